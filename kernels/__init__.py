@@ -1,0 +1,35 @@
+"""Warp kernels of fastneus and their pure-torch twins (installed as ``fastneus.kernels``).
+
+Every op ``name`` has a twin ``name_torch`` with the same signature and maths.
+``get_op(name, backend)`` picks one, so the pipeline runs on either backend.
+See docs/INTERNALS.md for the contracts.
+"""
+from __future__ import annotations
+
+import importlib
+
+# op name -> module holding ``name`` and ``name_torch``
+_OPS = {
+    "hash_encode": "hashgrid",
+    "march_rays": "occupancy",
+    "occupancy_alpha": "occupancy",
+    "render_pattern": "render",
+    "raycast_mesh": "raycast",
+}
+
+BACKENDS = ("warp", "torch")
+
+
+def get_op(name: str, backend: str = "warp"):
+    """Return the Warp op ``name`` or its torch twin.
+
+    Args:
+        name: one of the keys of ``_OPS``.
+        backend: "warp" or "torch".
+    """
+    if name not in _OPS:
+        raise KeyError(f"unknown kernel op {name!r}; known: {sorted(_OPS)}")
+    if backend not in BACKENDS:
+        raise ValueError(f"unknown kernel backend {backend!r}; use one of {BACKENDS}")
+    mod = importlib.import_module(f"{__name__}.{_OPS[name]}")
+    return getattr(mod, name if backend == "warp" else f"{name}_torch")

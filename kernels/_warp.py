@@ -1,0 +1,68 @@
+"""Shared Warp plumbing: one-time init, torch<->warp device mapping, stream sharing.
+
+Warp is imported only inside ``fastneus.kernels`` (this folder).
+"""
+from __future__ import annotations
+
+import os
+import threading
+
+import torch
+import warp as wp
+
+_lock = threading.Lock()
+_initialised = False
+
+
+def init() -> None:
+    """Initialise Warp once, quietly (no banner, kernel cache in the default place)."""
+    global _initialised
+    if _initialised:
+        return
+    with _lock:
+        if not _initialised:
+            wp.config.quiet = True
+            # Warp's CPU path is single-threaded; keep its compile logs out of users' terminals.
+            wp.config.verbose = False
+            if os.environ.get("FASTNEUS_WARP_DEBUG"):
+                wp.config.mode = "debug"
+            wp.init()
+            _initialised = True
+
+
+def device_of(t: torch.Tensor) -> str:
+    """Warp device string for a torch tensor ("cpu" or "cuda:N")."""
+    init()
+    if t.device.type == "cuda":
+        return f"cuda:{t.device.index if t.device.index is not None else torch.cuda.current_device()}"
+    return "cpu"
+
+
+def stream_of(t: torch.Tensor):
+    """Warp stream wrapping torch's current stream for ``t``'s device (None on CPU)."""
+    if t.device.type != "cuda":
+        return None
+    return wp.stream_from_torch(torch.cuda.current_stream(t.device))
+
+
+def to_wp(t: torch.Tensor, dtype=None, requires_grad: bool = False):
+    """Zero-copy view of a contiguous torch tensor as a Warp array.
+
+    Args:
+        t: contiguous torch tensor on cpu or cuda.
+        dtype: Warp dtype (e.g. ``wp.vec3`` for a [N, 3] float32 tensor); inferred when None.
+        requires_grad: kept False: adjoints are passed explicitly as separate arrays so
+            that Warp never allocates hidden gradient buffers.
+    """
+    if not t.is_contiguous():
+        t = t.contiguous()
+    return wp.from_torch(t, dtype=dtype, requires_grad=requires_grad)
+
+
+def launch(kernel, dim, inputs, ref: torch.Tensor, outputs=None, adj_inputs=None, adj_outputs=None,
+           adjoint: bool = False) -> None:
+    """Launch ``kernel`` on ``ref``'s device and torch's current stream (no host sync)."""
+    if (isinstance(dim, int) and dim == 0) or (isinstance(dim, tuple) and 0 in dim):
+        return
+    wp.launch(kernel, dim=dim, inputs=inputs, outputs=outputs or [], adj_inputs=adj_inputs or [],
+              adj_outputs=adj_outputs or [], adjoint=adjoint, device=device_of(ref), stream=stream_of(ref))
