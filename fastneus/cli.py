@@ -1,0 +1,86 @@
+"""Command-line entry point: ``fastneus <verb> ...``.
+
+Each verb lives in its own module exposing ``register(subparsers)``; that function adds
+the verb's parser and sets ``func`` to a handler taking the parsed args. Bad input
+raises :class:`fastneus.errors.FastneusError`, printed here as one line (exit 2).
+"""
+from __future__ import annotations
+
+import argparse
+import importlib
+import os
+import sys
+
+from .errors import FastneusError
+
+# verb modules, in the order shown by --help
+VERB_MODULES = [
+    "fastneus.demo",
+    "fastneus.synth",
+    "fastneus.patterns",
+    "fastneus.train.cli",
+    "fastneus.export.cli",
+    "fastneus.formats.cli",
+]
+
+
+def resolve_device(name: str | None) -> str:
+    """Validate ``--device`` (cpu|cuda); default: cuda when available, else cpu."""
+    import torch
+
+    if name in (None, "", "auto"):
+        return "cuda" if torch.cuda.is_available() else "cpu"
+    if name not in ("cpu", "cuda") and not name.startswith("cuda:"):
+        raise FastneusError(f"unknown device {name!r}; use cpu or cuda", field="--device")
+    if name.startswith("cuda") and not torch.cuda.is_available():
+        raise FastneusError("CUDA was asked for but torch sees no CUDA GPU; use --device cpu", field="--device")
+    return name
+
+
+def add_device_arg(p: argparse.ArgumentParser) -> None:
+    """Add the common ``--device cpu|cuda`` option (default: cuda when available)."""
+    p.add_argument("--device", default=None, help="cpu or cuda (default: cuda when available, else cpu)")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="fastneus",
+        description="Fast ActiveNeuS: reconstruct surfaces from images lit by calibrated projectors.",
+    )
+    sub = parser.add_subparsers(dest="verb", metavar="<verb>")
+    for name in VERB_MODULES:
+        try:
+            mod = importlib.import_module(name)
+        except ModuleNotFoundError as e:  # a verb module not written yet must not break the others
+            if e.name and (name == e.name or name.startswith(e.name + ".")):
+                continue
+            raise
+        mod.register(sub)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if not getattr(args, "func", None):
+        parser.print_help()
+        return 0
+    try:
+        rc = args.func(args)
+        return int(rc or 0)
+    except FastneusError as e:
+        print(f"fastneus {args.verb}: error: {e}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print(f"fastneus {args.verb}: interrupted", file=sys.stderr)
+        return 130
+    except Exception as e:  # noqa: BLE001 - last resort: one line unless debugging
+        if os.environ.get("FASTNEUS_DEBUG"):
+            raise
+        print(f"fastneus {args.verb}: internal error: {type(e).__name__}: {e} "
+              f"(set FASTNEUS_DEBUG=1 for the traceback)", file=sys.stderr)
+        return 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())

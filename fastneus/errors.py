@@ -1,0 +1,19 @@
+"""One error type for bad input: the CLI prints it as one line, never a traceback."""
+from __future__ import annotations
+
+
+class FastneusError(Exception):
+    """Bad input or a failed precondition a user can fix.
+
+    Args:
+        message: what is wrong and, where it helps, what to do.
+        file: the file (or folder) concerned, if any.
+        field: the field/key inside that file, if any (dotted path, e.g. ``frames[3].image``).
+    """
+
+    def __init__(self, message: str, file: str | None = None, field: str | None = None):
+        self.message = message
+        self.file = str(file) if file is not None else None
+        self.field = field
+        where = ": ".join(p for p in (self.file, self.field) if p)
+        super().__init__(f"{where}: {message}" if where else message)

@@ -1,0 +1,1 @@
+"""Readers and writers for formats researchers already have (ActiveNeuS, OpenCV calibration, NeuS)."""
