@@ -1,0 +1,609 @@
+"""The fastneus scene model: cameras, projectors, patterns, frames, bounds, illumination.
+
+A scene is a folder holding ``scene.json`` (format ``"fastneus-scene"``, version 1) and
+the files it names (paths relative to the folder). :meth:`Scene.load` validates
+everything and raises :class:`~fastneus.errors.FastneusError` naming the file and field
+of the first problem; nothing is guessed.
+
+Conventions (docs/INTERNALS.md): OpenCV pinhole axes, integer pixel (u, v) centred at
+(u + 0.5, v + 0.5), poses are 4x4 ``cam_to_world`` / ``proj_to_world`` in world units
+(metres), ``x_world = radius * x_norm + center``.
+"""
+from __future__ import annotations
+
+import copy
+import json
+import math
+import os
+import struct
+import tempfile
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..errors import FastneusError
+
+FORMAT = "fastneus-scene"
+VERSION = 1
+POSE_TOL = 1e-4  # tolerance of the rigidity check R^T R = I
+
+
+# --------------------------------------------------------------------------- dataclasses
+@dataclass
+class Camera:
+    """Pinhole camera intrinsics. ``K`` maps camera coords to continuous pixel coords."""
+
+    id: str
+    K: np.ndarray  # [3, 3] float64
+    width: int
+    height: int
+    dist: np.ndarray = field(default_factory=lambda: np.zeros(5))  # [5] k1 k2 p1 p2 k3
+
+
+@dataclass
+class Projector:
+    """Projector intrinsics; ``proj_to_cam`` [4,4] rigs it to the frame's camera, None = free."""
+
+    id: str
+    K: np.ndarray  # [3, 3] float64
+    width: int
+    height: int
+    proj_to_cam: np.ndarray | None = None  # [4, 4] float64 or None (pose given per frame)
+
+
+@dataclass
+class Pattern:
+    """A pattern image file (path relative to the scene folder)."""
+
+    id: str
+    file: str
+
+
+@dataclass
+class FrameProjector:
+    """What one projector does in one frame: the pattern shown (None = off), free pose."""
+
+    pattern: str | None = None
+    proj_to_world: np.ndarray | None = None  # [4, 4] float64, only for free projectors
+
+
+@dataclass
+class Frame:
+    """One photograph. Frames sharing ``view`` share a viewpoint (multi-shot sequences)."""
+
+    image: str
+    camera: str
+    cam_to_world: np.ndarray  # [4, 4] float64
+    projectors: dict[str, FrameProjector] = field(default_factory=dict)
+    mask: str | None = None
+    view: int = 0
+    gt: dict[str, str] = field(default_factory=dict)  # optional: depth, normal, clean
+
+
+@dataclass
+class Bounds:
+    """Normalisation: ``x_world = radius * x_norm + center``; the unit sphere holds the object."""
+
+    center: np.ndarray  # [3] float64
+    radius: float
+
+
+@dataclass
+class Illumination:
+    """Pattern-projection parameters; ``known`` marks ground truth (synthetic data)."""
+
+    i_r: float = 0.4
+    i_b: float = 0.1
+    ambient: float = 1.0
+    known: bool = False
+
+
+GT_KEYS = ("depth", "normal", "clean")
+
+
+# --------------------------------------------------------------------------- helpers
+def _err(msg: str, file, fld: str | None = None) -> FastneusError:
+    return FastneusError(msg, file=file, field=fld)
+
+
+def _matrix(value: Any, shape: tuple[int, ...], file, fld: str) -> np.ndarray:
+    """Parse a nested list into a finite float64 array of ``shape``."""
+    try:
+        a = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise _err(f"expected a {'x'.join(map(str, shape))} array of numbers", file, fld) from None
+    if a.shape != shape:
+        raise _err(f"expected shape {'x'.join(map(str, shape))}, got {'x'.join(map(str, a.shape)) or 'scalar'}",
+                   file, fld)
+    if not np.all(np.isfinite(a)):
+        raise _err("contains non-finite values (nan/inf)", file, fld)
+    return a
+
+
+def check_pose(T: Any, file, fld: str) -> np.ndarray:
+    """Validate a rigid 4x4 transform (finite, R^T R = I within 1e-4, det +1, last row 0001)."""
+    T = _matrix(T, (4, 4), file, fld)
+    if not np.allclose(T[3], [0, 0, 0, 1], atol=1e-9):
+        raise _err(f"last row must be 0 0 0 1, got {T[3].tolist()}", file, fld)
+    R = T[:3, :3]
+    err = np.abs(R.T @ R - np.eye(3)).max()
+    if err > POSE_TOL:
+        raise _err(f"rotation is not orthonormal (max |R^T R - I| = {err:.3g} > {POSE_TOL})", file, fld)
+    if np.linalg.det(R) < 0:
+        raise _err("rotation has determinant -1 (a reflection, not a rotation)", file, fld)
+    return T
+
+
+def _intrinsics(K: Any, file, fld: str) -> np.ndarray:
+    K = _matrix(K, (3, 3), file, fld)
+    if K[0, 0] <= 0 or K[1, 1] <= 0 or not np.allclose(K[2], [0, 0, 1]):
+        raise _err("must be [[fx, s, cx], [0, fy, cy], [0, 0, 1]] with fx, fy > 0", file, fld)
+    return K
+
+
+def _int(value: Any, file, fld: str, minimum: int = 1) -> int:
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or int(value) != value or value < minimum:
+        raise _err(f"expected an integer >= {minimum}, got {value!r}", file, fld)
+    return int(value)
+
+
+def _num(value: Any, file, fld: str) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+        raise _err(f"expected a finite number, got {value!r}", file, fld)
+    return float(value)
+
+
+def _str(value: Any, file, fld: str) -> str:
+    if not isinstance(value, str) or not value:
+        raise _err(f"expected a non-empty string, got {value!r}", file, fld)
+    return value
+
+
+def _dict(value: Any, file, fld: str) -> dict:
+    if not isinstance(value, dict):
+        raise _err(f"expected an object, got {type(value).__name__}", file, fld)
+    return value
+
+
+def _req(d: dict, key: str, file, prefix: str) -> Any:
+    if key not in d:
+        raise _err("missing", file, f"{prefix}.{key}" if prefix else key)
+    return d[key]
+
+
+def image_size(path: str | os.PathLike) -> tuple[int, int] | None:
+    """(width, height) of an image, reading only the header for PNG; None if unreadable."""
+    path = str(path)
+    try:
+        with open(path, "rb") as f:
+            head = f.read(24)
+    except OSError:
+        return None
+    if len(head) >= 24 and head[:8] == b"\x89PNG\r\n\x1a\n" and head[12:16] == b"IHDR":
+        w, h = struct.unpack(">II", head[16:24])
+        return int(w), int(h)
+    import cv2  # other formats: decode once
+
+    im = cv2.imread(path, cv2.IMREAD_UNCHANGED)
+    if im is None:
+        return None
+    return int(im.shape[1]), int(im.shape[0])
+
+
+def _check_image(root: Path, rel: str, size: tuple[int, int] | None, file, fld: str) -> None:
+    p = root / rel
+    if not p.is_file():
+        raise _err(f"file not found: {p}", file, fld)
+    wh = image_size(p)
+    if wh is None:
+        raise _err(f"cannot read image {p}", file, fld)
+    if size is not None and wh != tuple(size):
+        raise _err(f"image {rel} is {wh[0]}x{wh[1]} but should be {size[0]}x{size[1]}", file, fld)
+
+
+def _read_rgb(path: Path, file, fld: str) -> np.ndarray:
+    import cv2
+
+    im = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    if im is None:
+        raise _err(f"cannot read image {path}", file, fld)
+    return np.ascontiguousarray(im[:, :, ::-1])
+
+
+def _list(a: np.ndarray | None):
+    return None if a is None else np.asarray(a, dtype=np.float64).tolist()
+
+
+# --------------------------------------------------------------------------- scene
+@dataclass
+class Scene:
+    """A validated scene. File paths in ``frames``/``patterns`` are relative to ``root``."""
+
+    root: Path
+    cameras: dict[str, Camera]
+    projectors: dict[str, Projector]
+    patterns: dict[str, Pattern]
+    frames: list[Frame]
+    bounds: Bounds
+    illumination: Illumination = field(default_factory=Illumination)
+    gt_mesh: str | None = None
+    units: str = "m"
+    name: str = ""
+
+    # ------------------------------------------------------------------ loading
+    @classmethod
+    def load(cls, path: str | os.PathLike) -> "Scene":
+        """Load and validate a scene folder or its ``scene.json``.
+
+        Raises:
+            FastneusError: naming the file and field of the first problem.
+        """
+        path = Path(path)
+        file = path / "scene.json" if path.is_dir() else path
+        if not file.is_file():
+            raise _err("scene.json not found", file)
+        try:
+            data = json.loads(file.read_text())
+        except (OSError, UnicodeDecodeError) as e:
+            raise _err(f"cannot read: {e}", file) from None
+        except json.JSONDecodeError as e:
+            raise _err(f"invalid JSON at line {e.lineno} column {e.colno}: {e.msg}", file) from None
+        return cls.from_dict(data, file.parent.resolve(), file=file)
+
+    @classmethod
+    def from_dict(cls, data: Any, root: str | os.PathLike, file=None, check_files: bool = True) -> "Scene":
+        """Build a scene from the parsed ``scene.json`` content, validating everything.
+
+        Args:
+            data: the JSON object.
+            root: folder the relative paths are resolved against.
+            file: the file named in error messages (default ``root/scene.json``).
+            check_files: also check that images/masks/patterns exist and have the right sizes.
+        """
+        root = Path(root)
+        file = file if file is not None else root / "scene.json"
+        d = _dict(data, file, None)
+        fmt = d.get("format")
+        if fmt != FORMAT:
+            raise _err(f"unknown format {fmt!r}; expected {FORMAT!r}", file, "format")
+        ver = d.get("version")
+        if ver != VERSION:
+            raise _err(f"unsupported version {ver!r}; this fastneus reads version {VERSION}", file, "version")
+        units = _str(d.get("units", "m"), file, "units")
+        name = d.get("name", "") or ""
+        if not isinstance(name, str):
+            raise _err("expected a string", file, "name")
+
+        b = _dict(_req(d, "bounds", file, ""), file, "bounds")
+        bounds = Bounds(center=_matrix(_req(b, "center", file, "bounds"), (3,), file, "bounds.center"),
+                        radius=_num(_req(b, "radius", file, "bounds"), file, "bounds.radius"))
+        if bounds.radius <= 0:
+            raise _err("must be > 0", file, "bounds.radius")
+
+        cameras: dict[str, Camera] = {}
+        for cid, c in _dict(_req(d, "cameras", file, ""), file, "cameras").items():
+            p = f"cameras.{cid}"
+            c = _dict(c, file, p)
+            dist = c.get("dist")
+            cameras[cid] = Camera(
+                id=cid, K=_intrinsics(_req(c, "K", file, p), file, f"{p}.K"),
+                width=_int(_req(c, "width", file, p), file, f"{p}.width"),
+                height=_int(_req(c, "height", file, p), file, f"{p}.height"),
+                dist=np.zeros(5) if dist is None else _matrix(dist, (5,), file, f"{p}.dist"))
+        if not cameras:
+            raise _err("no cameras", file, "cameras")
+
+        projectors: dict[str, Projector] = {}
+        for pid, pr in _dict(d.get("projectors", {}), file, "projectors").items():
+            p = f"projectors.{pid}"
+            pr = _dict(pr, file, p)
+            p2c = pr.get("proj_to_cam")
+            projectors[pid] = Projector(
+                id=pid, K=_intrinsics(_req(pr, "K", file, p), file, f"{p}.K"),
+                width=_int(_req(pr, "width", file, p), file, f"{p}.width"),
+                height=_int(_req(pr, "height", file, p), file, f"{p}.height"),
+                proj_to_cam=None if p2c is None else check_pose(p2c, file, f"{p}.proj_to_cam"))
+
+        patterns: dict[str, Pattern] = {}
+        pattern_sizes: dict[str, tuple[int, int]] = {}
+        for qid, q in _dict(d.get("patterns", {}), file, "patterns").items():
+            p = f"patterns.{qid}"
+            q = _dict(q, file, p)
+            patterns[qid] = Pattern(id=qid, file=_str(_req(q, "file", file, p), file, f"{p}.file"))
+            if check_files:
+                _check_image(root, patterns[qid].file, None, file, f"{p}.file")
+                pattern_sizes[qid] = image_size(root / patterns[qid].file)
+
+        fl = _req(d, "frames", file, "")
+        if not isinstance(fl, list):
+            raise _err("expected a list", file, "frames")
+        if not fl:
+            raise _err("no frames: a scene needs at least one image", file, "frames")
+        frames: list[Frame] = []
+        for i, f in enumerate(fl):
+            p = f"frames[{i}]"
+            f = _dict(f, file, p)
+            cam = _str(_req(f, "camera", file, p), file, f"{p}.camera")
+            if cam not in cameras:
+                raise _err(f"unknown camera id {cam!r}; known: {sorted(cameras)}", file, f"{p}.camera")
+            image = _str(_req(f, "image", file, p), file, f"{p}.image")
+            c2w = check_pose(_req(f, "cam_to_world", file, p), file, f"{p}.cam_to_world")
+            view = _int(f.get("view", i), file, f"{p}.view", minimum=0)
+            mask = f.get("mask")
+            if mask is not None:
+                mask = _str(mask, file, f"{p}.mask")
+            fps: dict[str, FrameProjector] = {}
+            for pid, fp in _dict(f.get("projectors", {}), file, f"{p}.projectors").items():
+                pp = f"{p}.projectors.{pid}"
+                if pid not in projectors:
+                    raise _err(f"unknown projector id {pid!r}; known: {sorted(projectors)}", file, pp)
+                fp = _dict(fp, file, pp)
+                pat = fp.get("pattern")
+                if pat is not None:
+                    if not isinstance(pat, str) or pat not in patterns:
+                        raise _err(f"unknown pattern id {pat!r}; known: {sorted(patterns)}", file, f"{pp}.pattern")
+                    pj = projectors[pid]
+                    if check_files and pattern_sizes[pat] != (pj.width, pj.height):
+                        w, h = pattern_sizes[pat]
+                        raise _err(f"pattern {pat!r} is {w}x{h} but projector {pid!r} is "
+                                   f"{pj.width}x{pj.height}", file, f"{pp}.pattern")
+                p2w = fp.get("proj_to_world")
+                if projectors[pid].proj_to_cam is None:
+                    if p2w is None:
+                        raise _err(f"projector {pid!r} is free (proj_to_cam null), so each frame needs "
+                                   "proj_to_world", file, f"{pp}.proj_to_world")
+                    p2w = check_pose(p2w, file, f"{pp}.proj_to_world")
+                elif p2w is not None:
+                    raise _err(f"projector {pid!r} is rigged to the camera (proj_to_cam); "
+                               "a per-frame proj_to_world would contradict it", file, f"{pp}.proj_to_world")
+                fps[pid] = FrameProjector(pattern=pat, proj_to_world=p2w)
+            gt = {}
+            for k, v in _dict(f.get("gt", {}), file, f"{p}.gt").items():
+                if k not in GT_KEYS:
+                    raise _err(f"unknown ground-truth key {k!r}; known: {list(GT_KEYS)}", file, f"{p}.gt.{k}")
+                gt[k] = _str(v, file, f"{p}.gt.{k}")
+                if check_files and not (root / gt[k]).is_file():
+                    raise _err(f"file not found: {root / gt[k]}", file, f"{p}.gt.{k}")
+            if check_files:
+                size = (cameras[cam].width, cameras[cam].height)
+                _check_image(root, image, size, file, f"{p}.image")
+                if mask is not None:
+                    _check_image(root, mask, size, file, f"{p}.mask")
+            frames.append(Frame(image=image, camera=cam, cam_to_world=c2w, projectors=fps, mask=mask,
+                                view=view, gt=gt))
+
+        il = _dict(d.get("illumination", {}), file, "illumination")
+        known = il.get("known", False)
+        if not isinstance(known, bool):
+            raise _err("expected true or false", file, "illumination.known")
+        illum = Illumination(**{k: _num(il[k], file, f"illumination.{k}") for k in ("i_r", "i_b", "ambient")
+                                if k in il}, known=known)
+        gt_mesh = _dict(d.get("gt", {}) or {}, file, "gt").get("mesh")
+        if gt_mesh is not None:
+            gt_mesh = _str(gt_mesh, file, "gt.mesh")
+            if check_files and not (root / gt_mesh).is_file():
+                raise _err(f"file not found: {root / gt_mesh}", file, "gt.mesh")
+        return cls(root=root, cameras=cameras, projectors=projectors, patterns=patterns, frames=frames,
+                   bounds=bounds, illumination=illum, gt_mesh=gt_mesh, units=units, name=name)
+
+    # ------------------------------------------------------------------ saving
+    def to_dict(self, rel_to: str | os.PathLike | None = None) -> dict:
+        """The ``scene.json`` content; paths rewritten relative to ``rel_to`` when given."""
+        root = Path(self.root).resolve()
+        dest = Path(rel_to).resolve() if rel_to is not None else root
+
+        def rp(p: str | None) -> str | None:
+            if p is None or dest == root:
+                return p
+            return Path(os.path.relpath(root / p, dest)).as_posix()
+
+        frames = []
+        for f in self.frames:
+            fd: dict[str, Any] = {"image": rp(f.image), "camera": f.camera, "cam_to_world": _list(f.cam_to_world),
+                                  "view": int(f.view), "projectors": {}}
+            for pid, fp in f.projectors.items():
+                e: dict[str, Any] = {"pattern": fp.pattern}
+                if fp.proj_to_world is not None:
+                    e["proj_to_world"] = _list(fp.proj_to_world)
+                fd["projectors"][pid] = e
+            if f.mask is not None:
+                fd["mask"] = rp(f.mask)
+            if f.gt:
+                fd["gt"] = {k: rp(v) for k, v in f.gt.items()}
+            frames.append(fd)
+        il = self.illumination
+        return {
+            "format": FORMAT, "version": VERSION, "units": self.units, "name": self.name,
+            "bounds": {"center": _list(self.bounds.center), "radius": float(self.bounds.radius)},
+            "cameras": {c.id: {"K": _list(c.K), "width": c.width, "height": c.height, "dist": _list(c.dist)}
+                        for c in self.cameras.values()},
+            "projectors": {p.id: {"K": _list(p.K), "width": p.width, "height": p.height,
+                                  "proj_to_cam": _list(p.proj_to_cam)} for p in self.projectors.values()},
+            "patterns": {q.id: {"file": rp(q.file)} for q in self.patterns.values()},
+            "frames": frames,
+            "illumination": {"i_r": float(il.i_r), "i_b": float(il.i_b), "ambient": float(il.ambient),
+                             "known": bool(il.known)},
+            "gt": {"mesh": rp(self.gt_mesh)},
+        }
+
+    def save(self, folder: str | os.PathLike | None = None) -> Path:
+        """Write ``scene.json`` into ``folder`` (default: the scene's root) atomically.
+
+        Paths are rewritten relative to ``folder`` when it differs from the root, so the
+        saved scene refers to the same files. Returns the path written.
+        """
+        folder = Path(folder if folder is not None else self.root)
+        folder.mkdir(parents=True, exist_ok=True)
+        text = json.dumps(self.to_dict(rel_to=folder), indent=1)
+        out = folder / "scene.json"
+        fd, tmp = tempfile.mkstemp(prefix=".scene.", suffix=".json.tmp", dir=folder)
+        try:
+            with os.fdopen(fd, "w") as fh:
+                fh.write(text + "\n")
+            os.replace(tmp, out)
+        except BaseException:
+            if os.path.exists(tmp):
+                os.unlink(tmp)
+            raise
+        return out
+
+    # ------------------------------------------------------------------ accessors
+    def path(self, rel: str) -> Path:
+        """Absolute path of a file named in the scene."""
+        return Path(self.root) / rel
+
+    def __len__(self) -> int:
+        return len(self.frames)
+
+    def frame_camera(self, i: int) -> Camera:
+        return self.cameras[self.frames[i].camera]
+
+    def cam_to_world(self, i: int) -> np.ndarray:
+        """[4, 4] float64 camera->world pose of frame ``i``."""
+        return self.frames[i].cam_to_world.copy()
+
+    def world_to_cam(self, i: int) -> np.ndarray:
+        return rigid_inverse(self.frames[i].cam_to_world)
+
+    def proj_to_world(self, i: int, proj_id: str) -> np.ndarray:
+        """[4, 4] projector->world of ``proj_id`` in frame ``i`` (rig or free pose)."""
+        pj = self.projectors[proj_id]
+        if pj.proj_to_cam is not None:
+            return self.frames[i].cam_to_world @ pj.proj_to_cam
+        fp = self.frames[i].projectors.get(proj_id)
+        if fp is None or fp.proj_to_world is None:
+            raise FastneusError(f"free projector {proj_id!r} has no pose in frame {i}",
+                                field=f"frames[{i}].projectors.{proj_id}.proj_to_world")
+        return fp.proj_to_world.copy()
+
+    def world_to_proj(self, i: int, proj_id: str) -> np.ndarray:
+        """[4, 4] world->projector of ``proj_id`` in frame ``i``."""
+        return rigid_inverse(self.proj_to_world(i, proj_id))
+
+    def active_projectors(self, i: int) -> list[tuple[str, str]]:
+        """(projector id, pattern id) of every projector showing a pattern in frame ``i``."""
+        return [(pid, fp.pattern) for pid, fp in self.frames[i].projectors.items() if fp.pattern is not None]
+
+    def normalisation(self) -> np.ndarray:
+        """[4, 4] float64 S mapping normalised -> world coordinates."""
+        S = np.eye(4)
+        S[:3, :3] *= self.bounds.radius
+        S[:3, 3] = self.bounds.center
+        return S
+
+    def views(self) -> dict[int, list[int]]:
+        """View id -> frame indices sharing that viewpoint (in frame order)."""
+        out: dict[int, list[int]] = {}
+        for i, f in enumerate(self.frames):
+            out.setdefault(f.view, []).append(i)
+        return out
+
+    def image(self, i: int) -> np.ndarray:
+        """uint8 [H, W, 3] RGB image of frame ``i`` (undistorted if the camera has distortion)."""
+        f = self.frames[i]
+        im = _read_rgb(self.path(f.image), self.root / "scene.json", f"frames[{i}].image")
+        return self._undistort(i, im)
+
+    def _undistort(self, i: int, im: np.ndarray, nearest: bool = False) -> np.ndarray:
+        cam = self.frame_camera(i)
+        if not np.any(cam.dist):
+            return im
+        import cv2
+
+        # cv2 uses the pixel-corner convention for integer coords; shift K by half a pixel
+        K = cam.K.copy()
+        K[0, 2] -= 0.5
+        K[1, 2] -= 0.5
+        if nearest:
+            m1, m2 = cv2.initUndistortRectifyMap(K, cam.dist, None, K, (im.shape[1], im.shape[0]), cv2.CV_32FC1)
+            return cv2.remap(im, m1, m2, cv2.INTER_NEAREST)
+        return cv2.undistort(im, K, cam.dist)
+
+    def mask(self, i: int) -> np.ndarray | None:
+        """float32 [H, W] in [0, 1] (soft edges kept) or None when the frame has no mask."""
+        f = self.frames[i]
+        if f.mask is None:
+            return None
+        import cv2
+
+        m = cv2.imread(str(self.path(f.mask)), cv2.IMREAD_UNCHANGED)
+        if m is None:
+            raise _err(f"cannot read mask {self.path(f.mask)}", self.root / "scene.json", f"frames[{i}].mask")
+        if m.ndim == 3:
+            m = m[:, :, 0]
+        scale = 65535.0 if m.dtype == np.uint16 else 255.0
+        m = m.astype(np.float32) / scale
+        return self._undistort(i, m)
+
+    def pattern_image(self, pid: str) -> np.ndarray:
+        """uint8 [h, w, 3] RGB pattern ``pid``."""
+        return _read_rgb(self.path(self.patterns[pid].file), self.root / "scene.json", f"patterns.{pid}.file")
+
+    def gt_depth(self, i: int) -> np.ndarray | None:
+        """float32 [H, W] ground-truth z-depth (world units, 0 = background) or None."""
+        rel = self.frames[i].gt.get("depth")
+        if rel is None:
+            return None
+        d = np.load(self.path(rel))
+        return np.asarray(d, dtype=np.float32)
+
+    def gt_normal(self, i: int) -> np.ndarray | None:
+        """float32 [H, W, 3] ground-truth world normals (zero = background) or None."""
+        rel = self.frames[i].gt.get("normal")
+        if rel is None:
+            return None
+        if rel.endswith(".npy"):
+            return np.asarray(np.load(self.path(rel)), dtype=np.float32)
+        im = _read_rgb(self.path(rel), self.root / "scene.json", f"frames[{i}].gt.normal").astype(np.float32)
+        n = im / 255.0 * 2.0 - 1.0
+        n[np.all(im == 0, axis=-1)] = 0.0  # black = background
+        return n
+
+    def gt_clean(self, i: int) -> np.ndarray | None:
+        """uint8 [H, W, 3] RGB pattern-free image or None."""
+        rel = self.frames[i].gt.get("clean")
+        if rel is None:
+            return None
+        return _read_rgb(self.path(rel), self.root / "scene.json", f"frames[{i}].gt.clean")
+
+    def subset(self, frame_indices) -> "Scene":
+        """A scene with only the given frames (same root, cameras, projectors, patterns)."""
+        idx = [int(i) for i in frame_indices]
+        if not idx:
+            raise FastneusError("a subset needs at least one frame", field="frames")
+        for i in idx:
+            if not 0 <= i < len(self.frames):
+                raise FastneusError(f"frame index {i} out of range 0..{len(self.frames) - 1}", field="frames")
+        s = copy.copy(self)
+        s.frames = [copy.deepcopy(self.frames[i]) for i in idx]
+        return s
+
+
+def rigid_inverse(T: np.ndarray) -> np.ndarray:
+    """Inverse of a rigid 4x4 transform (R^T, -R^T t)."""
+    out = np.eye(4)
+    R = T[:3, :3]
+    out[:3, :3] = R.T
+    out[:3, 3] = -R.T @ T[:3, 3]
+    return out
+
+
+def look_at(eye, target, up=(0.0, 0.0, 1.0)) -> np.ndarray:
+    """[4, 4] OpenCV cam_to_world at ``eye`` looking at ``target`` (x right, y down, z forward).
+
+    ``up`` is the world up direction; the image's y axis points along -up.
+    """
+    eye = np.asarray(eye, dtype=np.float64)
+    z = np.asarray(target, dtype=np.float64) - eye
+    z /= np.linalg.norm(z)
+    up = np.asarray(up, dtype=np.float64)
+    x = np.cross(z, up)  # right = forward x up
+    if np.linalg.norm(x) < 1e-8:  # looking along up: any perpendicular will do
+        x = np.cross(z, np.array([1.0, 0.0, 0.0]) if abs(z[0]) < 0.9 else np.array([0.0, 1.0, 0.0]))
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)
+    T = np.eye(4)
+    T[:3, 0], T[:3, 1], T[:3, 2], T[:3, 3] = x, y, z, eye
+    return T
