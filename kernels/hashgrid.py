@@ -1,0 +1,442 @@
+"""Multiresolution hash-grid encoding (Instant-NGP style): Warp kernels and a torch twin.
+
+Contract (docs/INTERNALS.md, "hash_encode"): level ``l`` has ``res_l + 1`` vertices per
+axis and vertex coordinate ``u * res_l``; its features are the trilinear interpolation of
+the 8 corner entries of ``table[l]``. A corner's entry is found by dense indexing
+``x + y*(r+1) + z*(r+1)^2`` when ``(res_l+1)^3 <= T``, else by the spatial hash
+``x ^ (y*2654435761) ^ (z*805459861) mod T`` in uint32 arithmetic. Levels
+``>= active_levels`` output zeros (coarse-to-fine training) and get no gradient.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+import warp as wp
+
+from ._warp import init, launch, to_wp
+
+init()
+# Gradients are hand-written below; skip Warp's generated adjoints (halves compile time).
+wp.set_module_options({"enable_backward": False})
+
+_PRIME_Y = 2654435761
+_PRIME_Z = 805459861
+_MAX_FEATURES = 8
+
+
+@dataclass(frozen=True)
+class HashGridConfig:
+    """Hash-grid hyper-parameters.
+
+    Attributes:
+        levels: number of resolution levels L.
+        features: features per level F (1..8).
+        log2_table: log2 of the entries per level T.
+        base_res: resolution of the coarsest level.
+        finest_res: resolution of the finest level.
+    """
+
+    levels: int = 16
+    features: int = 2
+    log2_table: int = 19
+    base_res: int = 16
+    finest_res: int = 2048
+
+    def __post_init__(self):
+        if self.levels < 1:
+            raise ValueError(f"HashGridConfig.levels must be >= 1, got {self.levels}")
+        if not 1 <= self.features <= _MAX_FEATURES:
+            raise ValueError(f"HashGridConfig.features must be in 1..{_MAX_FEATURES}, got {self.features}")
+        if not 1 <= self.log2_table <= 30:
+            raise ValueError(f"HashGridConfig.log2_table must be in 1..30, got {self.log2_table}")
+        if self.base_res < 1 or self.finest_res < self.base_res:
+            raise ValueError(
+                f"HashGridConfig needs 1 <= base_res <= finest_res, got {self.base_res}, {self.finest_res}")
+
+    @property
+    def table_size(self) -> int:
+        """Entries per level, T = 2**log2_table."""
+        return 1 << self.log2_table
+
+    @property
+    def out_dim(self) -> int:
+        """Width of the encoding, L * F."""
+        return self.levels * self.features
+
+    def growth(self) -> float:
+        """Per-level growth factor b = exp(ln(finest / base) / (L - 1))."""
+        if self.levels == 1:
+            return 1.0
+        return math.exp(math.log(self.finest_res / self.base_res) / (self.levels - 1))
+
+    def resolutions(self) -> list[int]:
+        """Per-level resolutions floor(base * b^l).
+
+        A 1e-6 guard absorbs float rounding, so that e.g. 16 * b^15 = 2047.9999999999984
+        gives the intended finest resolution 2048.
+        """
+        b = self.growth()
+        return [int(math.floor(self.base_res * b ** l + 1e-6)) for l in range(self.levels)]
+
+    def dense_levels(self) -> list[bool]:
+        """True for levels whose (res + 1)^3 vertices fit in the table (indexed densely)."""
+        return [(r + 1) ** 3 <= self.table_size for r in self.resolutions()]
+
+
+def init_table(cfg: HashGridConfig, device="cpu", generator: torch.Generator | None = None) -> torch.Tensor:
+    """Fresh feature table, uniform(-1e-4, 1e-4).
+
+    Args:
+        cfg: grid configuration.
+        device: device of the returned table.
+        generator: optional torch generator (the table is drawn on its device, then moved).
+
+    Returns:
+        table: [L, T, F] float32.
+    """
+    shape = (cfg.levels, cfg.table_size, cfg.features)
+    gen_device = generator.device if generator is not None else device
+    t = torch.rand(shape, generator=generator, device=gen_device, dtype=torch.float32)
+    return (t * 2e-4 - 1e-4).to(device)
+
+
+# ----------------------------------------------------------------------------- Warp kernels
+
+_PY = wp.constant(wp.uint32(_PRIME_Y))
+_PZ = wp.constant(wp.uint32(_PRIME_Z))
+
+
+@wp.func
+def _corner_index(x: int, y: int, z: int, r1: int, T: int, dense: int) -> int:
+    """Entry of vertex (x, y, z) in a level's table (dense or uint32 spatial hash)."""
+    if dense != 0:
+        # (r+1)^3 <= T < 2^31 here, so int32 cannot overflow
+        return x + y * r1 + z * r1 * r1
+    h = wp.uint32(x) ^ (wp.uint32(y) * _PY) ^ (wp.uint32(z) * _PZ)
+    # T is a power of two, so mod T is a mask (integer division is slow on GPUs)
+    return wp.int32(h & wp.uint32(T - 1))
+
+
+@wp.func
+def _cell(u: float, res: int):
+    """Clamped cell index and fraction of u * res (u = 1 lands in the last cell, frac 1)."""
+    p = wp.clamp(u, 0.0, 1.0) * float(res)
+    c = wp.min(int(wp.floor(p)), res - 1)
+    return c, p - float(c)
+
+
+@wp.kernel
+def _hash_fwd_kernel(
+    u: wp.array(dtype=wp.vec3),  # [N]
+    table: wp.array(dtype=float),  # [L*T*F] flat
+    levels: wp.array2d(dtype=wp.int32),  # [L, 2] (res, dense)
+    n_levels: int,  # L (column stride of out is L*F)
+    n_active: int,  # levels launched, <= L
+    T: int,
+    F: int,
+    out: wp.array2d(dtype=float),  # [N, L*F], zero-initialised
+):
+    # One thread per (point, active level); level fastest so that writes to out coalesce.
+    tid = wp.tid()
+    n = tid // n_active
+    l = tid - n * n_active
+    res = levels[l, 0]
+    dense = levels[l, 1]
+    r1 = res + 1
+    p = u[n]
+    cx, fx = _cell(p[0], res)
+    cy, fy = _cell(p[1], res)
+    cz, fz = _cell(p[2], res)
+    gx = 1.0 - fx
+    gy = 1.0 - fy
+    gz = 1.0 - fz
+    base = l * T
+    i000 = (base + _corner_index(cx, cy, cz, r1, T, dense)) * F
+    i100 = (base + _corner_index(cx + 1, cy, cz, r1, T, dense)) * F
+    i010 = (base + _corner_index(cx, cy + 1, cz, r1, T, dense)) * F
+    i110 = (base + _corner_index(cx + 1, cy + 1, cz, r1, T, dense)) * F
+    i001 = (base + _corner_index(cx, cy, cz + 1, r1, T, dense)) * F
+    i101 = (base + _corner_index(cx + 1, cy, cz + 1, r1, T, dense)) * F
+    i011 = (base + _corner_index(cx, cy + 1, cz + 1, r1, T, dense)) * F
+    i111 = (base + _corner_index(cx + 1, cy + 1, cz + 1, r1, T, dense)) * F
+    w000 = gx * gy * gz
+    w100 = fx * gy * gz
+    w010 = gx * fy * gz
+    w110 = fx * fy * gz
+    w001 = gx * gy * fz
+    w101 = fx * gy * fz
+    w011 = gx * fy * fz
+    w111 = fx * fy * fz
+    col = l * F
+    for f in range(F):
+        out[n, col + f] = (
+            w000 * table[i000 + f] + w100 * table[i100 + f] + w010 * table[i010 + f] + w110 * table[i110 + f]
+            + w001 * table[i001 + f] + w101 * table[i101 + f] + w011 * table[i011 + f] + w111 * table[i111 + f]
+        )
+
+
+@wp.kernel
+def _hash_bwd_kernel(
+    u: wp.array(dtype=wp.vec3),  # [N]
+    table: wp.array(dtype=float),  # [L*T*F] flat
+    levels: wp.array2d(dtype=wp.int32),  # [L, 2] (res, dense)
+    n_active: int,
+    T: int,
+    F: int,
+    grad_out: wp.array2d(dtype=float),  # [N, L*F]
+    need_table: int,
+    need_u: int,
+    grad_table: wp.array(dtype=float),  # [L*T*F] flat, zero-initialised (unused if not need_table)
+    grad_u: wp.array(dtype=wp.vec3),  # [N], zero-initialised (unused if not need_u)
+):
+    tid = wp.tid()
+    n = tid // n_active
+    l = tid - n * n_active
+    res = levels[l, 0]
+    dense = levels[l, 1]
+    r1 = res + 1
+    p = u[n]
+    cx, fx = _cell(p[0], res)
+    cy, fy = _cell(p[1], res)
+    cz, fz = _cell(p[2], res)
+    gx = 1.0 - fx
+    gy = 1.0 - fy
+    gz = 1.0 - fz
+    base = l * T
+    i000 = (base + _corner_index(cx, cy, cz, r1, T, dense)) * F
+    i100 = (base + _corner_index(cx + 1, cy, cz, r1, T, dense)) * F
+    i010 = (base + _corner_index(cx, cy + 1, cz, r1, T, dense)) * F
+    i110 = (base + _corner_index(cx + 1, cy + 1, cz, r1, T, dense)) * F
+    i001 = (base + _corner_index(cx, cy, cz + 1, r1, T, dense)) * F
+    i101 = (base + _corner_index(cx + 1, cy, cz + 1, r1, T, dense)) * F
+    i011 = (base + _corner_index(cx, cy + 1, cz + 1, r1, T, dense)) * F
+    i111 = (base + _corner_index(cx + 1, cy + 1, cz + 1, r1, T, dense)) * F
+    col = l * F
+    if need_table != 0:
+        w000 = gx * gy * gz
+        w100 = fx * gy * gz
+        w010 = gx * fy * gz
+        w110 = fx * fy * gz
+        w001 = gx * gy * fz
+        w101 = fx * gy * fz
+        w011 = gx * fy * fz
+        w111 = fx * fy * fz
+        for f in range(F):
+            g = grad_out[n, col + f]
+            wp.atomic_add(grad_table, i000 + f, w000 * g)
+            wp.atomic_add(grad_table, i100 + f, w100 * g)
+            wp.atomic_add(grad_table, i010 + f, w010 * g)
+            wp.atomic_add(grad_table, i110 + f, w110 * g)
+            wp.atomic_add(grad_table, i001 + f, w001 * g)
+            wp.atomic_add(grad_table, i101 + f, w101 * g)
+            wp.atomic_add(grad_table, i011 + f, w011 * g)
+            wp.atomic_add(grad_table, i111 + f, w111 * g)
+    if need_u != 0:
+        # s_c = <grad_out, table[corner c]>: the upstream gradient seen by corner weight w_c
+        s000 = float(0.0)
+        s100 = float(0.0)
+        s010 = float(0.0)
+        s110 = float(0.0)
+        s001 = float(0.0)
+        s101 = float(0.0)
+        s011 = float(0.0)
+        s111 = float(0.0)
+        for f in range(F):
+            g = grad_out[n, col + f]
+            s000 += g * table[i000 + f]
+            s100 += g * table[i100 + f]
+            s010 += g * table[i010 + f]
+            s110 += g * table[i110 + f]
+            s001 += g * table[i001 + f]
+            s101 += g * table[i101 + f]
+            s011 += g * table[i011 + f]
+            s111 += g * table[i111 + f]
+        # d w / d frac, times d frac / d u = res; zero where the clamp to [0, 1] is active
+        rs = float(res)
+        dx = (gy * gz * (s100 - s000) + fy * gz * (s110 - s010) + gy * fz * (s101 - s001) + fy * fz * (s111 - s011))
+        dy = (gx * gz * (s010 - s000) + fx * gz * (s110 - s100) + gx * fz * (s011 - s001) + fx * fz * (s111 - s101))
+        dz = (gx * gy * (s001 - s000) + fx * gy * (s101 - s100) + gx * fy * (s011 - s010) + fx * fy * (s111 - s110))
+        if p[0] < 0.0 or p[0] > 1.0:
+            dx = 0.0
+        if p[1] < 0.0 or p[1] > 1.0:
+            dy = 0.0
+        if p[2] < 0.0 or p[2] > 1.0:
+            dz = 0.0
+        wp.atomic_add(grad_u, n, wp.vec3(dx * rs, dy * rs, dz * rs))
+
+
+# ----------------------------------------------------------------------------- wrappers
+
+_level_cache: dict = {}
+
+
+def _level_table(cfg: HashGridConfig, device: torch.device) -> torch.Tensor:
+    """[L, 2] int32 (res, dense) on ``device``, cached so steady-state calls copy nothing."""
+    key = (tuple(cfg.resolutions()), cfg.table_size, str(device))
+    t = _level_cache.get(key)
+    if t is None:
+        t = torch.tensor([[r, int(d)] for r, d in zip(cfg.resolutions(), cfg.dense_levels())],
+                         dtype=torch.int32).to(device)
+        _level_cache[key] = t
+    return t
+
+
+def _n_active(cfg: HashGridConfig, active_levels: int | None) -> int:
+    if active_levels is None:
+        return cfg.levels
+    return max(0, min(int(active_levels), cfg.levels))
+
+
+def _check(u: torch.Tensor, table: torch.Tensor, cfg: HashGridConfig) -> None:
+    if u.dim() != 2 or u.shape[1] != 3:
+        raise ValueError(f"hash_encode: u must be [N, 3], got {tuple(u.shape)}")
+    want = (cfg.levels, cfg.table_size, cfg.features)
+    if tuple(table.shape) != want:
+        raise ValueError(f"hash_encode: table must be {list(want)} for this config, got {list(table.shape)}")
+    if u.device != table.device:
+        raise ValueError(f"hash_encode: u on {u.device} but table on {table.device}")
+
+
+class _HashEncode(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, u, table, cfg, n_active):
+        N = u.shape[0]
+        L, T, F = cfg.levels, cfg.table_size, cfg.features
+        u_c = u.detach().contiguous()
+        t_c = table.detach().contiguous()
+        levels = _level_table(cfg, u.device)
+        out = torch.zeros((N, L * F), dtype=torch.float32, device=u.device)
+        if N > 0 and n_active > 0:
+            launch(_hash_fwd_kernel, N * n_active,
+                   [to_wp(u_c, dtype=wp.vec3), to_wp(t_c.view(-1)), to_wp(levels), L, n_active, T, F],
+                   ref=u, outputs=[to_wp(out)])
+        ctx.save_for_backward(u_c, t_c)
+        ctx.cfg = cfg
+        ctx.n_active = n_active
+        return out
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, grad_out):
+        u_c, t_c = ctx.saved_tensors
+        cfg, n_active = ctx.cfg, ctx.n_active
+        need_u, need_table = ctx.needs_input_grad[0], ctx.needs_input_grad[1]
+        N = u_c.shape[0]
+        grad_u = torch.zeros_like(u_c) if need_u else None
+        grad_table = torch.zeros_like(t_c) if need_table else None
+        if N > 0 and n_active > 0 and (need_u or need_table):
+            go = grad_out.contiguous()
+            if go.dtype != torch.float32:
+                go = go.float()
+            dummy_vec = torch.zeros((1, 3), dtype=torch.float32, device=u_c.device)
+            dummy = torch.zeros((1,), dtype=torch.float32, device=u_c.device)
+            gt_wp = to_wp(grad_table.view(-1)) if need_table else to_wp(dummy)
+            gu_wp = to_wp(grad_u, dtype=wp.vec3) if need_u else to_wp(dummy_vec, dtype=wp.vec3)
+            launch(_hash_bwd_kernel, N * n_active,
+                   [to_wp(u_c, dtype=wp.vec3), to_wp(t_c.view(-1)), to_wp(_level_table(cfg, u_c.device)),
+                    n_active, cfg.table_size, cfg.features, to_wp(go), int(need_table), int(need_u)],
+                   ref=u_c, outputs=[gt_wp, gu_wp])
+        return grad_u, grad_table, None, None
+
+
+def hash_encode(
+    u: torch.Tensor,  # [N, 3] float32 in [0, 1]^3 (clamped)
+    table: torch.Tensor,  # [L, T, F] float32
+    cfg: HashGridConfig,
+    active_levels: int | None = None,
+) -> torch.Tensor:
+    """Multiresolution hash encoding with Warp kernels (differentiable w.r.t. u and table).
+
+    Runs on u's device and torch's current stream, without host synchronisation.
+
+    Args:
+        u: [N, 3] float32 grid coordinates, (x_n + 1) / 2; clamped to [0, 1] (zero
+            gradient where the clamp is active).
+        table: [L, T, F] float32 feature table.
+        cfg: grid configuration (L, T, F must match the table).
+        active_levels: levels >= this output zeros and get no gradient (None = all).
+
+    Returns:
+        feats: [N, L*F] float32, level-major (level l in columns l*F .. l*F+F-1).
+    """
+    _check(u, table, cfg)
+    if u.dtype != torch.float32 or table.dtype != torch.float32:
+        raise TypeError(f"hash_encode (warp) needs float32 u and table, got {u.dtype} and {table.dtype}")
+    if cfg.levels * cfg.table_size * cfg.features >= 2 ** 31:
+        raise ValueError("hash_encode: L*T*F must stay below 2^31 (int32 flat indices)")
+    return _HashEncode.apply(u, table, cfg, _n_active(cfg, active_levels))
+
+
+# ----------------------------------------------------------------------------- torch twin
+
+def hash_index_torch(x: torch.Tensor, y: torch.Tensor, z: torch.Tensor, res: int, T: int) -> torch.Tensor:
+    """Table entry of integer vertices (x, y, z) of a level of resolution ``res``.
+
+    Args:
+        x, y, z: integer tensors of one shape (any int dtype; computed in int64).
+        res: level resolution (vertices per axis res + 1).
+        T: entries in the level's table.
+
+    Returns:
+        int64 tensor of entries in [0, T), same shape as x.
+    """
+    x, y, z = x.long(), y.long(), z.long()
+    r1 = res + 1
+    if r1 ** 3 <= T:
+        return x + y * r1 + z * (r1 * r1)
+    # int64 products cannot overflow for coordinates < 2^31; the mask emulates uint32 wrap-around
+    m = 0xFFFFFFFF
+    h = (x & m) ^ ((y * _PRIME_Y) & m) ^ ((z * _PRIME_Z) & m)
+    return h % T
+
+
+def hash_encode_torch(
+    u: torch.Tensor,  # [N, 3] float in [0, 1]^3 (clamped)
+    table: torch.Tensor,  # [L, T, F] float
+    cfg: HashGridConfig,
+    active_levels: int | None = None,
+) -> torch.Tensor:
+    """Pure-torch twin of :func:`hash_encode` (same maths, torch autograd).
+
+    Works in u's dtype (float64 for gradcheck), on any device.
+
+    Args:
+        u: [N, 3] grid coordinates; clamped to [0, 1].
+        table: [L, T, F] feature table.
+        cfg: grid configuration.
+        active_levels: levels >= this output zeros (None = all).
+
+    Returns:
+        feats: [N, L*F], level-major.
+    """
+    _check(u, table, cfg)
+    N = u.shape[0]
+    T, F = cfg.table_size, cfg.features
+    n_active = _n_active(cfg, active_levels)
+    uc = u.clamp(0.0, 1.0)
+    outs = []
+    for l, res in enumerate(cfg.resolutions()):
+        if l >= n_active:
+            outs.append(table.new_zeros((N, F)))
+            continue
+        p = uc * res  # [N, 3]
+        c = torch.floor(p).clamp(max=res - 1).detach()  # u = 1 stays in the last cell
+        frac = p - c  # d frac / d u = res
+        ci = c.long()
+        feat = 0.0
+        for dz in (0, 1):
+            wz = frac[:, 2] if dz else 1.0 - frac[:, 2]
+            for dy in (0, 1):
+                wy = frac[:, 1] if dy else 1.0 - frac[:, 1]
+                for dx in (0, 1):
+                    wx = frac[:, 0] if dx else 1.0 - frac[:, 0]
+                    idx = hash_index_torch(ci[:, 0] + dx, ci[:, 1] + dy, ci[:, 2] + dz, res, T)
+                    feat = feat + (wx * wy * wz)[:, None] * table[l][idx]  # [N, F]
+        outs.append(feat)
+    out = torch.cat(outs, dim=1)
+    if n_active == 0:
+        # keep the (all-zero) result on the autograd graph so backward() still works
+        out = out + (table[:0].sum() + u[:0].sum())
+    return out
