@@ -1,0 +1,229 @@
+"""Training configuration: one dataclass holds every default; YAML presets and
+``key=value`` overrides layer on top (in that order). The resolved config is saved
+with each run, so a run can always be reproduced.
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+import os
+from dataclasses import dataclass, field, fields
+from importlib import resources
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from .errors import FastneusError
+
+
+@dataclass
+class Config:
+    """All knobs of a fastneus run (defaults = the GPU few-view preset)."""
+
+    # --- run ---
+    preset: str = "fewview"            # name of the preset this config came from (informational)
+    backend: str = "warp"              # kernel backend: warp | torch (the twins; for comparison)
+    seed: int = 0
+    steps: int = 3000                  # optimisation steps
+    time_budget: float = 0.0           # seconds of training; stops early when > 0
+    frames: list[int] | None = None    # frames to train on (None = all)
+    log_every: int = 50
+    save_every: int = 1000             # checkpoint period (steps); the last step always saves
+
+    # --- rays and samples ---
+    target_samples: int = 2 ** 18      # samples per step; the ray count adapts to hit it
+    init_rays: int = 2048
+    min_rays: int = 256
+    max_rays: int = 2 ** 16
+    march_step: float = math.sqrt(3) * 2 / 1024   # normalised units
+    max_samples_per_ray: int = 1024
+    bound: str = "sphere"              # sphere | box
+    background: float = 0.0            # background colour behind the object (synthetic data: black)
+
+    # --- occupancy grid ---
+    occ_resolution: int = 128
+    occ_update_every: int = 16
+    occ_warmup_steps: int = 256        # every cell occupied until then
+    occ_threshold: float = 0.01
+
+    # --- hash grid ---
+    levels: int = 16
+    features: int = 2
+    log2_table: int = 19
+    base_res: int = 16
+    finest_res: int = 2048
+    c2f_start_levels: int = 4          # coarse-to-fine: active levels at step 0 (0 = all)
+    c2f_steps_per_level: int = 100     # one more level every this many steps
+
+    # --- networks ---
+    sdf_hidden: int = 64
+    sdf_layers: int = 1
+    geo_features: int = 15
+    color_hidden: int = 64
+    color_layers: int = 2
+    view_dependent: bool = True        # colour network sees the view direction
+    init_radius: float = 0.5           # sphere initialisation of the SDF (normalised units)
+    variance_init: float = 0.3         # inv_s = exp(10 * v)
+    normal_eps_min: float = 1e-3       # lower bound for the finite-difference step (normalised)
+
+    # --- optimisation ---
+    lr: float = 1e-2
+    lr_variance: float = 1e-3
+    lr_illum: float = 1e-2
+    adam_eps: float = 1e-15
+    warmup_steps: int = 100            # linear lr warm-up
+    decay_to: float = 0.05             # final lr factor (cosine decay after warm-up)
+    eikonal_weight: float = 0.1
+    mask_weight: float = 0.0           # BCE on opacity vs mask (only when masks exist)
+    curvature_weight: float = 0.0      # smoothness prior (oneshot): |sdf(x+e) + sdf(x-e) - 2 sdf(x)|
+    cos_anneal_steps: int = 500
+
+    # --- projection / illumination ---
+    use_pattern: bool = True           # False = passive NeuS (no projected pattern in the model)
+    learn_illum: bool = True
+    illum_warmup_steps: int = 500      # i_r, i_b frozen before this step
+    illum_init: str = "scene"          # scene (values from scene.json) | ones (i_r = i_b = 1)
+
+    # --- export ---
+    mesh_resolution: int = 256
+    render_frames: list[int] = field(default_factory=lambda: [0])
+
+    def to_dict(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)
+
+
+_CHOICES = {
+    "backend": ("warp", "torch"),
+    "bound": ("sphere", "box"),
+    "illum_init": ("scene", "ones"),
+}
+_POSITIVE = {"steps", "target_samples", "init_rays", "min_rays", "max_rays", "march_step",
+             "max_samples_per_ray", "occ_resolution", "occ_update_every", "levels", "features",
+             "log2_table", "base_res", "finest_res", "sdf_hidden", "geo_features", "color_hidden",
+             "lr", "adam_eps", "mesh_resolution", "log_every", "save_every", "c2f_steps_per_level"}
+
+
+def preset_names() -> list[str]:
+    """Names of the presets shipped in ``configs/``."""
+    return sorted(p.name[:-5] for p in resources.files("fastneus.configs").iterdir() if p.name.endswith(".yaml"))
+
+
+def _read_yaml(path: Path | Any, label: str) -> dict[str, Any]:
+    try:
+        data = yaml.safe_load(path.read_text())
+    except (OSError, yaml.YAMLError) as e:
+        raise FastneusError(f"cannot read config: {e}".splitlines()[0], file=label) from None
+    if data is None:
+        return {}
+    if not isinstance(data, dict):
+        raise FastneusError("a config file must hold a mapping of key: value", file=label)
+    return data
+
+
+def _coerce(name: str, value: Any, default: Any, source: str) -> Any:
+    """Convert ``value`` (from YAML or a CLI string) to the type of the field's default."""
+    f = {f.name: f for f in fields(Config)}[name]
+    typ = str(f.type)
+    try:
+        if isinstance(value, str) and name != "preset" and not typ.startswith("str"):
+            value = yaml.safe_load(value)  # "3", "1e-2", "true", "[0, 4]", "null"
+        if typ.startswith("list") or "list[" in typ:
+            if value is None:
+                return None
+            if isinstance(value, int):
+                value = [value]
+            if not isinstance(value, (list, tuple)):
+                raise ValueError("expected a list such as [0, 4, 8]")
+            return [int(v) for v in value]
+        if isinstance(default, bool):
+            if not isinstance(value, bool):
+                raise ValueError("expected true or false")
+            return value
+        if isinstance(default, int):
+            if isinstance(value, float) and value.is_integer():
+                value = int(value)
+            if not isinstance(value, int) or isinstance(value, bool):
+                raise ValueError("expected an integer")
+            return value
+        if isinstance(default, float):
+            if isinstance(value, bool) or not isinstance(value, (int, float)):
+                raise ValueError("expected a number")
+            return float(value)
+        return str(value)
+    except (ValueError, yaml.YAMLError) as e:
+        raise FastneusError(f"bad value {value!r}: {e}", file=source, field=name) from None
+
+
+def apply(cfg: Config, updates: dict[str, Any], source: str) -> Config:
+    """Return ``cfg`` with ``updates`` applied and validated; unknown keys are errors."""
+    known = {f.name for f in fields(cfg)}
+    values = cfg.to_dict()
+    for k, v in updates.items():
+        if k not in known:
+            close = [n for n in known if n.startswith(k[:3])]
+            hint = f" (did you mean {', '.join(sorted(close))}?)" if close else ""
+            raise FastneusError(f"unknown config key{hint}", file=source, field=k)
+        values[k] = _coerce(k, v, getattr(Config(), k), source)
+    out = Config(**values)
+    validate(out, source)
+    return out
+
+
+def validate(cfg: Config, source: str = "config") -> None:
+    for k, choices in _CHOICES.items():
+        if getattr(cfg, k) not in choices:
+            raise FastneusError(f"must be one of {', '.join(choices)}, got {getattr(cfg, k)!r}", file=source, field=k)
+    for k in _POSITIVE:
+        if not getattr(cfg, k) > 0:
+            raise FastneusError(f"must be > 0, got {getattr(cfg, k)!r}", file=source, field=k)
+    if cfg.min_rays > cfg.max_rays:
+        raise FastneusError("min_rays must not exceed max_rays", file=source, field="min_rays")
+    if not (0 < cfg.decay_to <= 1):
+        raise FastneusError("must be in (0, 1]", file=source, field="decay_to")
+
+
+def load_config(config: str | None = None, overrides: list[str] | None = None,
+                base: dict[str, Any] | None = None) -> Config:
+    """Build the run config: defaults <- preset/YAML file <- ``base`` <- ``key=value`` overrides.
+
+    Args:
+        config: a preset name (``fewview``, ``oneshot``, ...) or a path to a YAML file.
+        overrides: strings ``key=value`` (value parsed as YAML).
+        base: extra keys applied after the YAML (used by verbs such as ``oneshot``).
+    """
+    cfg = Config()
+    if config:
+        path = Path(config)
+        if path.suffix in (".yaml", ".yml") or os.sep in config:
+            if not path.is_file():
+                raise FastneusError("config file not found", file=config)
+            data, label = _read_yaml(path, str(path)), str(path)
+        else:
+            res = resources.files("fastneus.configs") / f"{config}.yaml"
+            if not res.is_file():
+                raise FastneusError(f"unknown preset; presets: {', '.join(preset_names())}", field="--config")
+            data, label = _read_yaml(res, f"configs/{config}.yaml")
+        data.setdefault("preset", path.stem)
+        cfg = apply(cfg, data, label)
+    if base:
+        cfg = apply(cfg, base, "command line")
+    parsed: dict[str, Any] = {}
+    for item in overrides or []:
+        if "=" not in item:
+            raise FastneusError(f"expected key=value, got {item!r}", field="overrides")
+        k, v = item.split("=", 1)
+        parsed[k.strip()] = v
+    return apply(cfg, parsed, "command line")
+
+
+def save_config(cfg: Config, path: Path) -> None:
+    """Write the resolved config as YAML, atomically."""
+    from .io import atomic_write_text
+
+    atomic_write_text(path, yaml.safe_dump(cfg.to_dict(), sort_keys=False))
+
+
+def config_from_dict(d: dict[str, Any], source: str) -> Config:
+    """Rebuild a Config from a saved dict (a run's config.yaml or a checkpoint)."""
+    return apply(Config(), d, source)
