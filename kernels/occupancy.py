@@ -177,7 +177,7 @@ def _alpha_kernel(sdf: wp.array(dtype=float), inv_s: float, half_step: float, sc
 
 def _f32(x: float) -> float:
     """Round a python float to float32 so Warp's float arg and torch's scalar agree."""
-    return float(np.float32(x))
+    return float(np.float32(float(x)))
 
 
 def _alpha_scale(inv_s: float, step: float) -> float:
