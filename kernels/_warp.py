@@ -22,6 +22,8 @@ def init() -> None:
     with _lock:
         if not _initialised:
             wp.config.quiet = True
+            if hasattr(wp, "LOG_WARNING"):  # warp 1.19: the banner/module-load lines follow log_level
+                wp.config.log_level = wp.LOG_WARNING
             # Warp's CPU path is single-threaded; keep its compile logs out of users' terminals.
             wp.config.verbose = False
             if os.environ.get("FASTNEUS_WARP_DEBUG"):

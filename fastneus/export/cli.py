@@ -1,0 +1,92 @@
+"""Verbs ``mesh``, ``render`` and ``eval`` on a trained run folder."""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+from fastneus.cli import add_device_arg, resolve_device
+from fastneus.errors import FastneusError
+
+
+def open_run(run: str, device: str, scene: str | None = None):
+    """Scene + trainer (weights loaded) of a run folder."""
+    from fastneus.formats.detect import load_scene
+    from fastneus.train.trainer import trainer_from_run
+
+    rp = Path(run)
+    if not rp.is_dir():
+        raise FastneusError("run folder not found", file=run)
+    if scene is None:
+        meta = rp / "run.json"
+        if not meta.is_file():
+            raise FastneusError("run.json missing; pass --scene", file=str(meta))
+        try:
+            scene = json.loads(meta.read_text())["scene"]
+        except (ValueError, KeyError) as e:
+            raise FastneusError(f"unreadable run metadata: {e}", file=str(meta), field="scene") from None
+    sc = load_scene(scene)
+    return sc, trainer_from_run(sc, rp, device)
+
+
+def _mesh(args) -> int:
+    from fastneus.export.mesh import extract_mesh, save_mesh
+
+    device = resolve_device(args.device)
+    scene, tr = open_run(args.run, device, args.scene)
+    mesh = extract_mesh(tr.field, scene, args.resolution, tr.device, bound=tr.cfg.bound)
+    out = Path(args.out) if args.out else Path(args.run) / "mesh.ply"
+    save_mesh(mesh, out)
+    print(f"{out}: {len(mesh.vertices)} vertices, {len(mesh.faces)} faces (world units, {scene.units})")
+    return 0
+
+
+def _render(args) -> int:
+    from fastneus.export.evaluate import render_frames, save_renders
+
+    device = resolve_device(args.device)
+    scene, tr = open_run(args.run, device, args.scene)
+    frames = args.frame or [0]
+    for i in frames:
+        if not 0 <= i < len(scene.frames):
+            raise FastneusError(f"frame {i} out of range 0..{len(scene.frames) - 1}", field="--frame")
+    out = Path(args.out) if args.out else Path(args.run) / "renders"
+    paths = save_renders(render_frames(tr, frames), out)
+    for i, p in paths.items():
+        print(f"frame {i}: " + ", ".join(f"{k} {out / Path(v).name}" for k, v in p.items()))
+    return 0
+
+
+def _eval(args) -> int:
+    from fastneus.pipeline import finish_run
+
+    device = resolve_device(args.device)
+    _, tr = open_run(args.run, device, args.scene)
+    metrics = finish_run(tr, eval_frames=args.frame, mesh_resolution=args.resolution)
+    print(json.dumps(metrics, indent=1))
+    return 0
+
+
+def register(sub) -> None:
+    p = sub.add_parser("mesh", help="extract the mesh of a run (marching cubes, world units)")
+    p.add_argument("run")
+    p.add_argument("--resolution", type=int, default=512)
+    p.add_argument("--out", help="PLY or OBJ path (default RUN/mesh.ply)")
+    p.add_argument("--scene", help="scene folder (default: the one the run was trained on)")
+    add_device_arg(p)
+    p.set_defaults(func=_mesh)
+
+    r = sub.add_parser("render", help="render frames: with pattern, texture only, depth, normals")
+    r.add_argument("run")
+    r.add_argument("--frame", type=int, action="append", help="frame index (repeatable; default 0)")
+    r.add_argument("--out", help="output folder (default RUN/renders)")
+    r.add_argument("--scene")
+    add_device_arg(r)
+    r.set_defaults(func=_render)
+
+    e = sub.add_parser("eval", help="metrics (Chamfer, F-score, PSNR, depth, illumination) and report.html")
+    e.add_argument("run")
+    e.add_argument("--frame", type=int, action="append", help="frames to render for image metrics")
+    e.add_argument("--resolution", type=int, default=None, help="mesh resolution (default: the run's)")
+    e.add_argument("--scene")
+    add_device_arg(e)
+    e.set_defaults(func=_eval)

@@ -1,0 +1,157 @@
+"""The neural field: hash-grid SDF + small torch MLPs (geometry and colour D).
+
+Geometry: f(x) = MLP([x, hash(x)]) with Softplus(beta=100) and a sphere initialisation.
+Normals are finite differences through the hash grid (4-tap tetrahedron), so the
+eikonal loss needs only first-order gradients through the Warp kernels.
+"""
+from __future__ import annotations
+
+import math
+
+import torch
+import torch.nn as nn
+
+from fastneus.kernels import get_op
+from fastneus.kernels.hashgrid import HashGridConfig, init_table
+
+# tetrahedron taps: grad f ~= sum_i v_i f(x + eps v_i) / (4 eps)
+_TETRA = torch.tensor([[1.0, -1.0, -1.0], [-1.0, -1.0, 1.0], [-1.0, 1.0, -1.0], [1.0, 1.0, 1.0]])
+
+
+class SDFField(nn.Module):
+    """Hash-grid SDF and colour networks in normalised space ([-1, 1]^3).
+
+    Args:
+        cfg: a :class:`fastneus.config.Config` (grid and network sizes).
+        device: torch device.
+    """
+
+    def __init__(self, cfg, device: torch.device | str = "cpu"):
+        super().__init__()
+        self.cfg = cfg
+        self.grid_cfg = HashGridConfig(levels=cfg.levels, features=cfg.features, log2_table=cfg.log2_table,
+                                       base_res=cfg.base_res, finest_res=cfg.finest_res)
+        self.resolutions = self.grid_cfg.resolutions()
+        self.table = nn.Parameter(init_table(self.grid_cfg, device))
+        self.encode = get_op("hash_encode", cfg.backend)
+        n_feat = cfg.levels * cfg.features
+
+        # geometry MLP: [x (3), hash features] -> [sdf, geo features]
+        layers: list[nn.Module] = []
+        dims = [3 + n_feat] + [cfg.sdf_hidden] * cfg.sdf_layers + [1 + cfg.geo_features]
+        for i in range(len(dims) - 1):
+            lin = nn.Linear(dims[i], dims[i + 1])
+            self._geometric_init(lin, i == 0, i == len(dims) - 2, dims[i], cfg.init_radius)
+            layers.append(lin)
+            if i < len(dims) - 2:
+                layers.append(nn.Softplus(beta=100))
+        self.sdf_net = nn.Sequential(*layers).to(device)
+
+        # colour MLP: [x, normal, (view dir), geo features] -> D (sigmoid)
+        c_in = 3 + 3 + (3 if cfg.view_dependent else 0) + cfg.geo_features
+        cdims = [c_in] + [cfg.color_hidden] * cfg.color_layers + [3]
+        clayers: list[nn.Module] = []
+        for i in range(len(cdims) - 1):
+            clayers.append(nn.Linear(cdims[i], cdims[i + 1]))
+            if i < len(cdims) - 2:
+                clayers.append(nn.ReLU(inplace=True))
+        self.color_net = nn.Sequential(*clayers).to(device)
+
+        # NeuS variance: inv_s = exp(10 v)
+        self.variance = nn.Parameter(torch.tensor([cfg.variance_init], device=device))
+        self.active_levels = cfg.levels
+        self.register_buffer("_tetra", _TETRA.to(device), persistent=False)
+
+    @staticmethod
+    def _geometric_init(lin: nn.Linear, first: bool, last: bool, d_in: int, radius: float) -> None:
+        """SAL/NeuS geometric init so that f(x) ~= |x| - radius at the start."""
+        d_out = lin.out_features
+        if last:
+            nn.init.normal_(lin.weight, mean=math.sqrt(math.pi) / math.sqrt(d_in), std=1e-4)
+            nn.init.constant_(lin.bias, -radius)
+        elif first:
+            nn.init.constant_(lin.bias, 0.0)
+            nn.init.normal_(lin.weight[:, :3], 0.0, math.sqrt(2) / math.sqrt(d_out))
+            nn.init.constant_(lin.weight[:, 3:], 0.0)  # hash features start silent
+        else:
+            nn.init.constant_(lin.bias, 0.0)
+            nn.init.normal_(lin.weight, 0.0, math.sqrt(2) / math.sqrt(d_out))
+
+    # ------------------------------------------------------------------ geometry
+    def set_progress(self, step: int) -> None:
+        """Coarse-to-fine: enable one more hash level every ``c2f_steps_per_level`` steps."""
+        c = self.cfg
+        if c.c2f_start_levels <= 0:
+            self.active_levels = c.levels
+        else:
+            self.active_levels = min(c.levels, c.c2f_start_levels + step // c.c2f_steps_per_level)
+
+    def normal_eps(self) -> float:
+        """Finite-difference step tied to the finest active level (normalised units)."""
+        res = self.resolutions[max(0, self.active_levels - 1)]
+        return max(self.cfg.normal_eps_min, 2.0 / res)
+
+    def geometry(self, x: torch.Tensor) -> torch.Tensor:
+        """SDF network output for points.
+
+        Args:
+            x: [N, 3] float32 normalised positions.
+        Returns:
+            [N, 1 + geo_features]: sdf in column 0, geometric features after.
+        """
+        u = ((x + 1.0) * 0.5).clamp(0.0, 1.0)
+        feats = self.encode(u.contiguous(), self.table, self.grid_cfg, self.active_levels)
+        return self.sdf_net(torch.cat([x, feats], dim=-1))
+
+    def sdf(self, x: torch.Tensor) -> torch.Tensor:
+        """[N, 3] -> [N] signed distance (normalised units)."""
+        return self.geometry(x)[:, 0]
+
+    def sdf_and_grad(self, x: torch.Tensor, with_curvature: bool = False):
+        """SDF, geometric features and finite-difference gradient in one hash-grid call.
+
+        Args:
+            x: [N, 3] float32.
+            with_curvature: also return a Laplacian-like residual for a smoothness prior.
+        Returns:
+            sdf [N], geo [N, G], grad [N, 3], (curv [N] or None)
+        """
+        n = x.shape[0]
+        eps = self.normal_eps()
+        taps = x[None, :, :] + eps * self._tetra[:, None, :]          # [4, N, 3]
+        out = self.geometry(torch.cat([x, taps.reshape(-1, 3)], 0))   # [5N, 1+G]
+        sdf, geo = out[:n, 0], out[:n, 1:]
+        f_taps = out[n:, 0].reshape(4, n)
+        grad = (f_taps[:, :, None] * self._tetra[:, None, :]).sum(0) / (4.0 * eps)
+        curv = None
+        if with_curvature:
+            # mean of the tetrahedron taps minus the centre ~ eps^2/2 * Laplacian / 3
+            curv = (f_taps.mean(0) - sdf) / (eps * eps)
+        return sdf, geo, grad, curv
+
+    # ------------------------------------------------------------------ colour
+    def color(self, x: torch.Tensor, normal: torch.Tensor, dirs: torch.Tensor, geo: torch.Tensor) -> torch.Tensor:
+        """Colour D of the scene itself (no pattern).
+
+        Args:
+            x: [N, 3] positions; normal: [N, 3] SDF gradients; dirs: [N, 3] unit view directions;
+            geo: [N, G] geometric features.
+        Returns:
+            [N, 3] in (0, 1).
+        """
+        n = normal / normal.norm(dim=-1, keepdim=True).clamp_min(1e-6)
+        parts = [x, n] + ([dirs] if self.cfg.view_dependent else []) + [geo]
+        return torch.sigmoid(self.color_net(torch.cat(parts, dim=-1)))
+
+    def inv_s(self) -> torch.Tensor:
+        """[1] NeuS sharpness exp(10 v), clamped to a safe range."""
+        return torch.exp(self.variance * 10.0).clamp(1e-3, 1e6)
+
+    def param_groups(self, cfg):
+        """Adam parameter groups (hash table and MLPs at lr, variance at lr_variance)."""
+        return [
+            {"params": [self.table], "lr": cfg.lr, "name": "grid"},
+            {"params": list(self.sdf_net.parameters()) + list(self.color_net.parameters()), "lr": cfg.lr,
+             "name": "mlp"},
+            {"params": [self.variance], "lr": cfg.lr_variance, "name": "variance"},
+        ]

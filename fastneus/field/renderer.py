@@ -1,0 +1,86 @@
+"""Rays -> packed samples -> field -> NeuS compositing with pattern projection.
+
+The glue between the occupancy grid (marching), the field (torch MLPs over the Warp
+hash grid) and the render kernel; used by training, rendering and evaluation alike.
+"""
+from __future__ import annotations
+
+import torch
+
+from fastneus.kernels import get_op
+
+
+def _empty(n_rays: int, device, dtype=torch.float32) -> dict:
+    z = lambda *s: torch.zeros(*s, device=device, dtype=dtype)  # noqa: E731
+    return {"color": z(n_rays, 3), "opacity": z(n_rays), "depth": z(n_rays), "texture": z(n_rays, 3),
+            "normal": z(n_rays, 3), "grad": z(0, 3), "curv": None, "n_samples": 0}
+
+
+def render_rays(field, bits: torch.Tensor, grid_res: int, proj, origins: torch.Tensor, dirs: torch.Tensor,
+                fidx: torch.Tensor, cfg, *, i_r: torch.Tensor, i_b: torch.Tensor, cos_anneal: float,
+                jitter: bool = True, with_normals: bool = False, curvature: bool = False,
+                use_pattern: bool | None = None) -> dict:
+    """Render a batch of rays.
+
+    Args:
+        field: :class:`fastneus.field.model.SDFField`.
+        bits: [R^3] uint8 occupancy bits; grid_res: R.
+        proj: :class:`fastneus.sampling.Projection` (per-frame projector data).
+        origins, dirs: [B, 3] float32 normalised rays (dirs unit length).
+        fidx: [B] int32 row of ``proj`` (frame) per ray.
+        cfg: run config (march step, sample cap, bound, backend).
+        i_r, i_b: [1] illumination (reflectance, bias).
+        cos_anneal: NeuS cos-anneal ratio in [0, 1].
+        jitter: random start offset per ray (training) or 0 (rendering).
+        with_normals: also return per-ray weighted normals.
+        curvature: also return the curvature residual per sample.
+        use_pattern: override ``cfg.use_pattern`` (False renders without projection).
+    Returns:
+        dict with color [B,3], opacity [B], depth [B] (normalised t), texture [B,3],
+        normal [B,3] (if asked), grad [S,3], curv [S] or None, n_samples (int).
+    """
+    device = origins.device
+    n = origins.shape[0]
+    march = get_op("march_rays", cfg.backend)
+    render = get_op("render_pattern", cfg.backend)
+    jit = torch.rand(n, device=device) if jitter else torch.zeros(n, device=device)
+    offsets, counts, t0, t1, ray_index = march(origins, dirs, bits, grid_res, cfg.march_step,
+                                               cfg.max_samples_per_ray, jit, cfg.bound, 0.0)
+    s = t0.shape[0]
+    if s == 0:
+        return _empty(n, device)
+    ri = ray_index.long()
+    d_s = dirs[ri]
+    pos = origins[ri] + d_s * ((t0 + t1) * 0.5)[:, None]
+    sdf, geo, grad, curv = field.sdf_and_grad(pos, with_curvature=curvature)
+    color = field.color(pos, grad, d_s, geo)
+    pattern_on = cfg.use_pattern if use_pattern is None else use_pattern
+    pat = proj.pattern if pattern_on else torch.full_like(proj.pattern, -1)
+    out = render(sdf, grad, color, pos, t0, t1, ray_index, offsets, counts, dirs, fidx,
+                 proj.K, proj.W, pat, proj.store, field.inv_s(), float(cos_anneal), i_r, i_b,
+                 return_weights=with_normals)
+    res = dict(out)
+    res["grad"], res["curv"], res["n_samples"] = grad, curv, s
+    if with_normals:
+        w = out["weights"].detach()
+        nrm = grad.detach() / grad.detach().norm(dim=-1, keepdim=True).clamp_min(1e-6)
+        res["normal"] = torch.zeros(n, 3, device=device).index_add_(0, ri, w[:, None] * nrm)
+    return res
+
+
+@torch.no_grad()
+def render_image(field, bits, grid_res, proj, origins, dirs, fidx, cfg, *, i_r, i_b, chunk: int = 8192) -> dict:
+    """Render many rays in chunks without gradients (full images for reports/eval).
+
+    Args: as :func:`render_rays`; origins/dirs [N, 3], fidx [N].
+    Returns:
+        dict of CPU tensors: color [N,3], texture [N,3], opacity [N], depth [N], normal [N,3].
+    """
+    outs: dict[str, list[torch.Tensor]] = {k: [] for k in ("color", "texture", "opacity", "depth", "normal")}
+    for a in range(0, origins.shape[0], chunk):
+        sl = slice(a, a + chunk)
+        r = render_rays(field, bits, grid_res, proj, origins[sl], dirs[sl], fidx[sl], cfg, i_r=i_r, i_b=i_b,
+                        cos_anneal=1.0, jitter=False, with_normals=True)
+        for k in outs:
+            outs[k].append(r[k].detach().float().cpu())
+    return {k: torch.cat(v) for k, v in outs.items()}

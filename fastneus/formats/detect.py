@@ -1,0 +1,50 @@
+"""Open any supported scene folder: fastneus (scene.json), ActiveNeuS, NeuS/DTU.
+
+Every verb that takes a scene goes through :func:`load_scene`, so users never need a
+conversion step.
+"""
+from __future__ import annotations
+
+import importlib
+from pathlib import Path
+
+import numpy as np
+
+from fastneus.errors import FastneusError
+
+
+def detect_format(path: str | Path) -> str:
+    """'fastneus', 'activeneus' or 'neus' for a scene folder (or a scene.json path)."""
+    p = Path(path)
+    if p.is_file() and p.name == "scene.json" or (p / "scene.json").is_file():
+        return "fastneus"
+    if not p.exists():
+        raise FastneusError("scene not found", file=str(p))
+    npz = p / "cameras_sphere.npz"
+    if npz.is_file():
+        try:
+            keys = set(np.load(npz, allow_pickle=True).files)
+        except Exception as e:  # noqa: BLE001 - report, do not trace
+            raise FastneusError(f"unreadable npz: {e}", file=str(npz)) from None
+        if "cam_proj_pose_0" in keys or "cam_mat_0" in keys:
+            return "activeneus"
+        if "world_mat_0" in keys:
+            return "neus"
+        raise FastneusError("neither ActiveNeuS (cam_mat_0) nor NeuS (world_mat_0) keys found", file=str(npz))
+    raise FastneusError("not a scene folder: expected scene.json (fastneus) or cameras_sphere.npz "
+                        "(ActiveNeuS / NeuS)", file=str(p))
+
+
+_READERS = {"activeneus": ("fastneus.formats.activeneus", "read_activeneus"),
+            "neus": ("fastneus.formats.neus", "read_neus")}
+
+
+def load_scene(path: str | Path):
+    """Load a scene of any supported format as a validated :class:`fastneus.data.Scene`."""
+    from fastneus.data import Scene
+
+    fmt = detect_format(path)
+    if fmt == "fastneus":
+        return Scene.load(path)
+    mod, fn = _READERS[fmt]
+    return getattr(importlib.import_module(mod), fn)(path)

@@ -1,0 +1,79 @@
+"""A whole run: train -> mesh -> renders -> metrics -> illumination -> report."""
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+from fastneus.config import Config
+from fastneus.errors import FastneusError
+from fastneus.io import atomic_write_json
+
+
+def default_eval_frames(scene, train_frames: list[int], limit: int = 3) -> list[int]:
+    """Frames to render for the report: the first training frame plus a few held-out ones."""
+    held = [i for i in range(len(scene.frames)) if i not in set(train_frames)]
+    picks = [train_frames[0]]
+    if held:
+        step = max(1, len(held) // max(1, limit - 1))
+        picks += held[::step][: limit - 1]
+    return picks
+
+
+def finish_run(trainer, console=None, eval_frames: list[int] | None = None, mesh_resolution: int | None = None) -> dict:
+    """Mesh, renders, metrics, illumination.json and report.html for a trained ``trainer``."""
+    from fastneus.export.evaluate import geometry_metrics, illumination_metrics, image_metrics, render_frames, save_renders
+    from fastneus.export.mesh import extract_mesh, save_mesh
+    from fastneus.export.report import write_report
+
+    say = console.print if console is not None else (lambda *a, **k: None)
+    run, scene, cfg = trainer.out, trainer.scene, trainer.cfg
+    t = time.perf_counter()
+    res = mesh_resolution or cfg.mesh_resolution
+    mesh = extract_mesh(trainer.field, scene, res, trainer.device, bound=cfg.bound)
+    save_mesh(mesh, run / "mesh.ply")
+    say(f"mesh: {len(mesh.vertices)} vertices, {len(mesh.faces)} faces -> {run / 'mesh.ply'} "
+        f"({time.perf_counter() - t:.1f}s)")
+    frames = eval_frames if eval_frames is not None else default_eval_frames(scene, trainer.frames)
+    t = time.perf_counter()
+    renders = render_frames(trainer, frames)
+    paths = save_renders(renders, run / "renders")
+    for i in frames:
+        if scene.gt_clean(i) is not None:
+            from fastneus.io import atomic_write_image
+            atomic_write_image(run / "renders" / f"{i:03d}_clean.png", scene.gt_clean(i))
+            paths[i]["clean"] = f"renders/{i:03d}_clean.png"
+    say(f"renders of frames {frames} -> {run / 'renders'} ({time.perf_counter() - t:.1f}s)")
+    metrics: dict = {"steps": trainer.step, "train_seconds": round(trainer.elapsed, 2),
+                     "train_frames": len(trainer.frames), "skipped_steps": trainer.skipped}
+    metrics.update(illumination_metrics(trainer))
+    metrics.update(geometry_metrics(mesh, scene, trainer.frames))
+    metrics.update(image_metrics(scene, renders))
+    atomic_write_json(run / "metrics.json", metrics)
+    ill = {k: metrics[k] for k in ("i_r", "i_b", "i_r_gt", "i_b_gt", "i_r_err", "i_b_err") if k in metrics}
+    atomic_write_json(run / "illumination.json", ill)
+    write_report(run, metrics, paths, cfg.to_dict(), title=f"fastneus: {scene.name or scene.root.name}")
+    return metrics
+
+
+def train_scene(scene, cfg: Config, out: Path, device: str, console=None, resume: bool = False,
+                finish: bool = True) -> tuple[object, dict]:
+    """Train on ``scene`` into run folder ``out``; then mesh/render/evaluate/report.
+
+    Returns:
+        (trainer, metrics) — metrics empty when ``finish`` is False.
+    """
+    from fastneus.train.trainer import CKPT_NAME, Trainer, load_checkpoint
+
+    out = Path(out)
+    trainer = Trainer(scene, cfg, out, device, console)
+    if resume:
+        if not (out / CKPT_NAME).is_file():
+            raise FastneusError("--resume given but the run folder has no checkpoint", file=str(out / CKPT_NAME))
+        trainer.load_state(load_checkpoint(out, map_location=device))
+    atomic_write_json(out / "run.json", {"scene": str(scene.root), "device": str(device), "preset": cfg.preset})
+    last = trainer.fit()
+    if console is not None and last:
+        console.print(f"trained {trainer.step} steps in {trainer.elapsed:.1f}s: loss {last['loss']:.4f}, "
+                      f"PSNR {last['psnr']:.2f} dB, i_r {last['i_r']:.4f}, i_b {last['i_b']:.4f}")
+    metrics = finish_run(trainer, console) if finish else {}
+    return trainer, metrics

@@ -1,0 +1,157 @@
+"""Random (frame, pixel) batches -> rays in normalised coordinates.
+
+Images are kept once as uint8 (one flat store for all frames, whatever their sizes),
+so memory grows with the pixels on disk, never with float copies per pattern.
+Projectors are flattened to per-(frame, projector) matrices and one shared
+:class:`fastneus.kernels.render.PatternStore` holding each distinct pattern once.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from fastneus.kernels.render import PatternStore
+
+
+def _normalised_camera(scene, i: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(K^-1 [3,3], R_c2w [3,3], origin [3] in normalised space) of frame i."""
+    cam = scene.frame_camera(i)
+    c2w = np.asarray(scene.cam_to_world(i), dtype=np.float64)
+    b = scene.bounds
+    origin = (c2w[:3, 3] - np.asarray(b.center, dtype=np.float64)) / float(b.radius)
+    return np.linalg.inv(np.asarray(cam.K, dtype=np.float64)), c2w[:3, :3], origin
+
+
+@dataclass
+class Projection:
+    """Per-frame projector data for the render kernel.
+
+    Attributes:
+        K: [F, P, 3, 3] projector intrinsics.
+        W: [F, P, 3, 4] normalised point -> projector camera coordinates.
+        pattern: [F, P] int32 index into ``store`` (-1 = off).
+        store: all distinct patterns, packed once.
+    """
+
+    K: torch.Tensor
+    W: torch.Tensor
+    pattern: torch.Tensor
+    store: PatternStore
+
+
+def build_projection(scene, frames: list[int], device) -> Projection:
+    """Collect every projector of ``frames`` (in scene order) into kernel-ready tensors."""
+    proj_ids = list(scene.projectors.keys())
+    S = np.asarray(scene.normalisation(), dtype=np.float64)
+    pat_ids: list[str] = []
+    F, P = len(frames), max(1, len(proj_ids))
+    K = np.zeros((F, P, 3, 3))
+    W = np.zeros((F, P, 3, 4))
+    pat = -np.ones((F, P), dtype=np.int32)
+    for a, i in enumerate(frames):
+        frame = scene.frames[i]
+        for k, pid in enumerate(proj_ids):
+            K[a, k] = np.eye(3)
+            W[a, k, :, :3] = np.eye(3)
+            fp = frame.projectors.get(pid)
+            if fp is None or fp.pattern is None:
+                continue
+            K[a, k] = scene.projectors[pid].K
+            W[a, k] = (np.asarray(scene.world_to_proj(i, pid), dtype=np.float64) @ S)[:3]
+            if fp.pattern not in pat_ids:
+                pat_ids.append(fp.pattern)
+            pat[a, k] = pat_ids.index(fp.pattern)
+    store = PatternStore([scene.pattern_image(p) for p in pat_ids], device) if pat_ids else \
+        PatternStore([np.zeros((1, 1, 3), np.uint8)], device)
+    t = lambda a, dt=torch.float32: torch.as_tensor(a, dtype=dt, device=device).contiguous()  # noqa: E731
+    return Projection(t(K), t(W), t(pat, torch.int32), store)
+
+
+class RayBank:
+    """All training pixels of a scene as one uint8 store, and the cameras to cast their rays.
+
+    Args:
+        scene: a loaded :class:`fastneus.data.Scene`.
+        frames: frame indices to use (into ``scene.frames``).
+        device: where the store lives (the GPU when training there).
+        load_masks: keep masks (uint8) for the mask loss / metrics.
+    """
+
+    def __init__(self, scene, frames: list[int], device, load_masks: bool = False):
+        self.frames = list(frames)
+        self.device = torch.device(device)
+        sizes, kinv, rot, org, chunks, masks = [], [], [], [], [], []
+        for i in self.frames:
+            img = scene.image(i)
+            h, w = img.shape[:2]
+            sizes.append((w, h))
+            chunks.append(torch.from_numpy(np.ascontiguousarray(img.reshape(-1, 3))))
+            ki, r, o = _normalised_camera(scene, i)
+            kinv.append(ki)
+            rot.append(r)
+            org.append(o)
+            if load_masks:
+                m = scene.mask(i)
+                masks.append(None if m is None else torch.from_numpy((np.clip(m, 0, 1) * 255).astype(np.uint8).reshape(-1)))
+        self.has_masks = load_masks and all(m is not None for m in masks)
+        self.rgb = torch.cat(chunks).to(self.device)                          # [sum HW, 3] uint8
+        self.mask = torch.cat(masks).to(self.device) if self.has_masks else None  # [sum HW] uint8
+        wh = torch.tensor(sizes, dtype=torch.int64)
+        self.wh = wh.to(self.device)                                          # [F, 2]
+        self.offset = torch.cat([torch.zeros(1, dtype=torch.int64), torch.cumsum(wh[:, 0] * wh[:, 1], 0)[:-1]]).to(self.device)
+        f32 = dict(dtype=torch.float32, device=self.device)
+        self.kinv = torch.tensor(np.stack(kinv), **f32)                      # [F, 3, 3]
+        self.rot = torch.tensor(np.stack(rot), **f32)                        # [F, 3, 3]
+        self.origin = torch.tensor(np.stack(org), **f32)                     # [F, 3]
+        self.n_pixels = int((wh[:, 0] * wh[:, 1]).sum())
+
+    def rays(self, fidx: torch.Tensor, u: torch.Tensor, v: torch.Tensor):
+        """Rays through pixel centres.
+
+        Args:
+            fidx: [B] int64 index into ``self.frames``; u, v: [B] float32 continuous pixel coords
+                (pixel centre of integer pixel (c, r) is (c + 0.5, r + 0.5)).
+        Returns:
+            origins [B, 3], dirs [B, 3] (unit) in normalised space.
+        """
+        pix = torch.stack([u, v, torch.ones_like(u)], -1)
+        d_cam = torch.einsum("bij,bj->bi", self.kinv[fidx], pix)
+        d = torch.einsum("bij,bj->bi", self.rot[fidx], d_cam)
+        d = d / d.norm(dim=-1, keepdim=True)
+        return self.origin[fidx].contiguous(), d.contiguous()
+
+    def sample(self, n: int, generator: torch.Generator | None = None):
+        """``n`` random (frame, pixel) pairs, uniform over all pixels of all frames.
+
+        Returns:
+            dict: fidx [n] int32, origins [n, 3], dirs [n, 3], rgb [n, 3] float in [0, 1],
+            mask [n] float (if masks), pix [n] int64 flat pixel index.
+        """
+        g = generator
+        flat = torch.randint(0, self.n_pixels, (n,), device=self.device, generator=g)
+        fidx = torch.searchsorted(self.offset, flat, right=True) - 1
+        local = flat - self.offset[fidx]
+        w = self.wh[fidx, 0]
+        col, row = local % w, local // w
+        o, d = self.rays(fidx, col.float() + 0.5, row.float() + 0.5)
+        out = {"fidx": fidx.to(torch.int32), "origins": o, "dirs": d,
+               "rgb": self.rgb[flat].float() / 255.0, "pix": flat}
+        if self.mask is not None:
+            out["mask"] = self.mask[flat].float() / 255.0
+        return out
+
+    def image_rays(self, a: int):
+        """All rays of frame ``self.frames[a]`` in row-major order: (origins, dirs, (h, w))."""
+        w, h = (int(x) for x in self.wh[a].tolist())
+        row, col = torch.meshgrid(torch.arange(h, device=self.device), torch.arange(w, device=self.device), indexing="ij")
+        fidx = torch.full((h * w,), a, dtype=torch.int64, device=self.device)
+        o, d = self.rays(fidx, col.reshape(-1).float() + 0.5, row.reshape(-1).float() + 0.5)
+        return o, d, (h, w)
+
+    def image(self, a: int) -> torch.Tensor:
+        """[H, W, 3] uint8 of frame ``self.frames[a]``."""
+        w, h = (int(x) for x in self.wh[a].tolist())
+        off = int(self.offset[a])
+        return self.rgb[off:off + w * h].reshape(h, w, 3)

@@ -1,0 +1,78 @@
+"""Verbs ``train`` and ``oneshot``."""
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from fastneus.cli import add_device_arg, resolve_device
+from fastneus.errors import FastneusError
+
+
+def _default_out(scene_path: str, tag: str) -> Path:
+    return Path("runs") / f"{Path(scene_path).resolve().name}-{tag}"
+
+
+def _console():
+    from rich.console import Console
+
+    return Console(stderr=False)
+
+
+# one-shot priors layered on cpu-quick when the oneshot verb runs on a CPU
+ONESHOT_CPU = {"view_dependent": False, "curvature_weight": 5e-4}
+
+
+def _run(args, tag: str, default_preset: str, oneshot_frame: int | None = None) -> int:
+    from fastneus.config import load_config
+    from fastneus.formats.detect import load_scene
+    from fastneus.pipeline import train_scene
+
+    device = resolve_device(args.device)
+    preset = args.config or (default_preset if device.startswith("cuda") else "cpu-quick")
+    scene = load_scene(args.scene)
+    base: dict = {}
+    if oneshot_frame is not None:
+        i = oneshot_frame
+        if not args.config and not device.startswith("cuda"):
+            base.update(ONESHOT_CPU)
+        if not 0 <= i < len(scene.frames):
+            raise FastneusError(f"frame {i} out of range 0..{len(scene.frames) - 1}", field="--frame")
+        view = scene.frames[i].view
+        base["frames"] = [j for j, f in enumerate(scene.frames) if f.view == view]
+    cfg = load_config(preset, args.overrides, base=base)
+    out = Path(args.out) if args.out else _default_out(args.scene, tag)
+    con = _console()
+    con.print(f"[bold]fastneus {tag}[/bold]: scene {args.scene} ({len(scene.frames)} frames, "
+              f"{len(cfg.frames) if cfg.frames else len(scene.frames)} used), preset {cfg.preset}, "
+              f"device {device}, backend {cfg.backend} -> {out}")
+    _, metrics = train_scene(scene, cfg, out, device, console=con, resume=args.resume)
+    show = [k for k in ("chamfer_gt2rec_mm", "chamfer_gt2rec_filtered_mm", "visible_gt2rec_mm", "fscore",
+                        "psnr_pattern", "psnr_texture", "i_r", "i_b") if k in metrics]
+    con.print("  ".join(f"{k} {metrics[k]:.4g}" for k in show))
+    con.print(f"report: {out / 'report.html'}")
+    return 0
+
+
+def _common(p: argparse.ArgumentParser) -> None:
+    p.add_argument("scene", help="scene folder (fastneus scene.json, ActiveNeuS or NeuS cameras_sphere.npz)")
+    p.add_argument("--config", help="preset name (fewview, oneshot, cpu-quick, passive, paper) or YAML file "
+                                    "(default: fewview on cuda, cpu-quick on cpu)")
+    p.add_argument("--out", help="run folder (default runs/<scene>-<verb>)")
+    p.add_argument("--resume", action="store_true", help="continue from the run folder's checkpoint")
+    add_device_arg(p)
+    p.add_argument("overrides", nargs="*", metavar="key=value", help="config overrides, e.g. steps=2000 lr=0.005")
+
+
+def register(sub) -> None:
+    p = sub.add_parser("train", help="reconstruct a scene: mesh, renders, metrics, report",
+                       description="Train fastneus on a scene, then export mesh.ply, renders, metrics.json, "
+                                   "illumination.json and report.html into the run folder.")
+    _common(p)
+    p.set_defaults(func=lambda a: _run(a, "train", "fewview"))
+
+    q = sub.add_parser("oneshot", help="reconstruct from a single viewpoint (all patterns shown there)",
+                       description="One-shot reconstruction: uses only the frames of one viewpoint "
+                                   "(the view of --frame), with the oneshot preset.")
+    _common(q)
+    q.add_argument("--frame", type=int, default=0, help="a frame of the viewpoint to use (default 0)")
+    q.set_defaults(func=lambda a: _run(a, "oneshot", "oneshot", oneshot_frame=a.frame))
