@@ -231,6 +231,7 @@ class Scene:
     gt_mesh: str | None = None
     units: str = "m"
     name: str = ""
+    meta: dict = field(default_factory=dict)  # free-form provenance (e.g. how synth made it), kept on save
 
     # ------------------------------------------------------------------ loading
     @classmethod
@@ -385,8 +386,9 @@ class Scene:
             gt_mesh = _str(gt_mesh, file, "gt.mesh")
             if check_files and not (root / gt_mesh).is_file():
                 raise _err(f"file not found: {root / gt_mesh}", file, "gt.mesh")
+        meta = _dict(d.get("meta", {}) or {}, file, "meta")
         return cls(root=root, cameras=cameras, projectors=projectors, patterns=patterns, frames=frames,
-                   bounds=bounds, illumination=illum, gt_mesh=gt_mesh, units=units, name=name)
+                   bounds=bounds, illumination=illum, gt_mesh=gt_mesh, units=units, name=name, meta=meta)
 
     # ------------------------------------------------------------------ saving
     def to_dict(self, rel_to: str | os.PathLike | None = None) -> dict:
@@ -426,6 +428,7 @@ class Scene:
             "illumination": {"i_r": float(il.i_r), "i_b": float(il.i_b), "ambient": float(il.ambient),
                              "known": bool(il.known)},
             "gt": {"mesh": rp(self.gt_mesh)},
+            "meta": copy.deepcopy(self.meta),
         }
 
     def save(self, folder: str | os.PathLike | None = None) -> Path:

@@ -1,0 +1,85 @@
+"""Built-in test shapes for synthetic scenes (trimesh meshes, world units = metres).
+
+Every shape is a set of closed, non-interpenetrating parts, so each ground-truth surface
+point is a real outer surface. :func:`normalise_mesh` centres a mesh and scales it to
+a bounding-sphere radius of 1 m (about 2 m across, like NeRF-Synthetic).
+"""
+from __future__ import annotations
+
+import numpy as np
+import trimesh
+
+from .errors import FastneusError
+
+SHAPES = ("sphere", "torus", "toy")
+
+
+def _coloured(m: trimesh.Trimesh, rgb) -> trimesh.Trimesh:
+    m.visual = trimesh.visual.ColorVisuals(m, vertex_colors=np.tile(np.r_[rgb, 255], (len(m.vertices), 1)))
+    return m
+
+
+def _place(m: trimesh.Trimesh, translate=(0, 0, 0), rotate_deg=0.0, axis=(1, 0, 0)) -> trimesh.Trimesh:
+    T = trimesh.transformations.rotation_matrix(np.deg2rad(rotate_deg), axis)
+    T[:3, 3] = translate
+    m.apply_transform(T)
+    return m
+
+
+def toy_parts() -> list[trimesh.Trimesh]:
+    """Parts of the composite ``toy``: a thick-walled cup (concavity), a thin fin (2 cm),
+    a standing torus (hole) and a sphere, laid out with disjoint bounding boxes."""
+    # cup: revolve a closed profile (r, z) around z; opening faces up (+z) toward the cameras
+    prof = np.array([(0, 0), (0.45, 0), (0.5, 0.05), (0.5, 0.65), (0.42, 0.65), (0.42, 0.08), (0, 0.08)])
+    cup = _coloured(trimesh.creation.revolve(prof, sections=96), (200, 120, 60))
+    _place(cup, (-0.55, 0.25, -0.45))
+    fin = _coloured(trimesh.creation.box((0.7, 0.02, 0.5)), (60, 160, 200))
+    _place(fin, (0.55, 0.55, -0.15), rotate_deg=20, axis=(0, 0, 1))
+    torus = _coloured(trimesh.creation.torus(major_radius=0.32, minor_radius=0.09, major_sections=96,
+                                             minor_sections=32), (180, 60, 160))
+    _place(torus, (0.45, -0.45, -0.1), rotate_deg=90, axis=(1, 0, 0))  # standing, hole facing -y
+    ball = _coloured(trimesh.creation.icosphere(subdivisions=4, radius=0.25), (120, 200, 90))
+    _place(ball, (-0.45, -0.55, -0.2))
+    return [cup, fin, torus, ball]
+
+
+def make_shape(name: str) -> trimesh.Trimesh:
+    """A built-in shape (before normalisation) with per-vertex colours."""
+    if name == "sphere":
+        # finely tessellated: max radial deviation ~5e-5 of the radius
+        return _coloured(trimesh.creation.icosphere(subdivisions=6, radius=1.0), (180, 180, 180))
+    if name == "torus":
+        m = trimesh.creation.torus(major_radius=0.7, minor_radius=0.3, major_sections=128, minor_sections=64)
+        return _place(_coloured(m, (190, 150, 110)), rotate_deg=30)
+    if name == "toy":
+        parts = toy_parts()
+        return trimesh.util.concatenate(parts)
+    raise FastneusError(f"unknown shape {name!r}; use one of {', '.join(SHAPES)}", field="--shape")
+
+
+def load_mesh(path) -> trimesh.Trimesh:
+    """Load any mesh trimesh reads (PLY/OBJ/STL/GLB...), scenes flattened into one mesh."""
+    try:
+        m = trimesh.load(str(path), force="mesh", process=True)
+    except Exception as e:  # noqa: BLE001 - trimesh raises many types for bad files
+        raise FastneusError(f"cannot load mesh: {e}", file=path, field="--mesh") from None
+    if not isinstance(m, trimesh.Trimesh) or len(m.faces) == 0:
+        raise FastneusError("no triangles in the mesh", file=path, field="--mesh")
+    return m
+
+
+def normalise_mesh(m: trimesh.Trimesh, radius: float = 1.0) -> tuple[trimesh.Trimesh, float, np.ndarray]:
+    """Centre the bounding box at the origin and scale to bounding-sphere ``radius``.
+
+    Returns:
+        (mesh, scale, offset) with ``x_new = scale * (x_old + offset)``.
+    """
+    m = m.copy()
+    offset = -m.bounds.mean(axis=0)
+    m.apply_translation(offset)
+    r = float(np.linalg.norm(m.vertices, axis=1).max())
+    if not np.isfinite(r) or r <= 0:
+        raise FastneusError("degenerate mesh (zero size)", field="--mesh")
+    scale = radius / r
+    m.apply_scale(scale)
+    return m, scale, offset
