@@ -359,6 +359,14 @@ def write_activeneus(scene: Scene, out: str | os.PathLike, downscale: int = 1) -
     arrays["near"] = np.float32(max(float(dist.min()) - r, 1e-3))
     arrays["far"] = np.float32(float(dist.max()) + r)
 
+    # a previous, longer scene in ``out`` would leave frames behind: drop unwritten images
+    written = {f"{i:03d}.png" for i in range(len(scene.frames))}
+    written |= {f"{i:03d}_{k:02d}.png" for i in range(len(scene.frames)) for k in range(len(pids))}
+    for sub in ("image", "mask", "pattern"):
+        for p in _images(out / sub):
+            if p.name not in written or (sub == "mask" and not has_mask):
+                p.unlink()
+
     npz = out / NPZ
 
     def w(tmp: str) -> None:

@@ -1,0 +1,127 @@
+"""Verbs ``convert`` (between scene formats) and ``import-calib`` (procam calibration -> scene)."""
+from __future__ import annotations
+
+import os
+import shutil
+import warnings
+from pathlib import Path
+
+from fastneus.errors import FastneusError
+
+TARGETS = ("fastneus", "activeneus")
+
+
+def write_fastneus(scene, out: str | os.PathLike):
+    """Copy a scene's files into ``out`` (image/, mask/, pattern/, gt/) and save ``scene.json``.
+
+    Files are copied byte for byte (no re-encoding, so nothing is lost); camera
+    distortion stays in the scene. Returns the saved, re-loaded :class:`Scene`.
+    """
+    import copy
+
+    from fastneus.data import Scene
+
+    out = Path(out)
+    if out.resolve() == Path(scene.root).resolve():
+        raise FastneusError("output folder is the input folder; choose another --out", file=out)
+    s = copy.deepcopy(scene)
+    copied: dict[str, str] = {}
+
+    def put(rel: str, sub: str, name: str) -> str:
+        src = scene.path(rel)
+        key = str(src.resolve())
+        if key not in copied:
+            dst = f"{sub}/{name}{src.suffix.lower()}"
+            (out / sub).mkdir(parents=True, exist_ok=True)
+            shutil.copyfile(src, out / dst)
+            copied[key] = dst
+        return copied[key]
+
+    for i, f in enumerate(s.frames):
+        f.image = put(f.image, "image", f"{i:03d}")
+        if f.mask is not None:
+            f.mask = put(f.mask, "mask", f"{i:03d}")
+        f.gt = {k: put(v, "gt", f"{i:03d}_{k}") for k, v in f.gt.items()}
+    for q in s.patterns.values():
+        q.file = put(q.file, "pattern", q.id)
+    if s.gt_mesh is not None:
+        s.gt_mesh = put(s.gt_mesh, "gt", "mesh")
+    s.root = out
+    s.save(out)
+    return Scene.load(out)
+
+
+def _convert(args) -> int:
+    from fastneus.formats.detect import load_scene
+
+    scene = load_scene(args.scene)
+    if args.to == "fastneus":
+        write_fastneus(scene, args.out)
+    else:
+        from fastneus.formats.activeneus import write_activeneus
+
+        write_activeneus(scene, args.out, downscale=args.downscale)
+    print(f"wrote {args.to} scene with {len(scene.frames)} frames -> {args.out}")
+    return 0
+
+
+def _list_images(folder: str, what: str) -> list[Path]:
+    from fastneus.formats.activeneus import _images
+
+    p = Path(folder)
+    if p.is_file():
+        return [p]
+    files = _images(p)
+    if not files:
+        raise FastneusError("no images found", file=p, field=what)
+    return files
+
+
+def _import_calib(args) -> int:
+    from fastneus.formats.opencv_calib import make_scene_from_calibration
+
+    bounds = None
+    if args.bounds:
+        try:
+            v = [float(x) for x in args.bounds.split(",")]
+            assert len(v) == 4 and v[3] > 0
+        except (ValueError, AssertionError):
+            raise FastneusError(f"expected cx,cy,cz,radius with radius > 0, got {args.bounds!r}",
+                                field="--bounds") from None
+        bounds = (v[:3], v[3])
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        scene = make_scene_from_calibration(
+            args.calib if len(args.calib) > 1 else args.calib[0], _list_images(args.images, "--images"),
+            _list_images(args.patterns, "--patterns"), args.poses or args.colmap, args.out, units=args.units,
+            proj_size=args.proj_size, colmap_scale=args.colmap_scale, bounds=bounds)
+    for w in caught:
+        print(f"warning: {w.message}")
+    print(f"wrote fastneus scene with {len(scene.frames)} frames -> {Path(args.out) / 'scene.json'}")
+    return 0
+
+
+def register(subparsers) -> None:
+    p = subparsers.add_parser("convert", help="convert a scene between formats (fastneus, ActiveNeuS; reads NeuS too)",
+                              description="Read a scene of any supported format and write it as TO.")
+    p.add_argument("scene", help="scene folder (fastneus, ActiveNeuS or NeuS)")
+    p.add_argument("--to", required=True, choices=TARGETS)
+    p.add_argument("--out", required=True, help="output folder")
+    p.add_argument("--downscale", type=int, default=1, help="activeneus target: shrink images by this factor")
+    p.set_defaults(func=_convert)
+
+    p = subparsers.add_parser("import-calib", help="make a scene from an OpenCV projector-camera calibration",
+                              description="Build a fastneus scene from a procam calibration file (Moreno-Taubin, "
+                                          "OpenCV stereo, procam-calibration layouts), photos, patterns and poses.")
+    p.add_argument("calib", nargs="+", help="calibration YAML/XML (several files are merged)")
+    p.add_argument("--images", required=True, help="folder of photos (sorted = frame order)")
+    p.add_argument("--patterns", required=True, help="folder (one pattern per photo, or one for all) or a file")
+    g = p.add_mutually_exclusive_group(required=True)
+    g.add_argument("--poses", help="scene.json whose frames give cam_to_world in order")
+    g.add_argument("--colmap", help="COLMAP text model folder (cameras.txt, images.txt)")
+    p.add_argument("--proj-size", help="projector WIDTHxHEIGHT when the file lacks it")
+    p.add_argument("--units", default="mm", choices=("mm", "cm", "m"), help="units of the calibration's T")
+    p.add_argument("--colmap-scale", type=float, default=1.0, help="metres per COLMAP unit (default 1)")
+    p.add_argument("--bounds", help="cx,cy,cz,radius of the region of interest in metres")
+    p.add_argument("--out", required=True, help="output scene folder")
+    p.set_defaults(func=_import_calib)

@@ -1,0 +1,341 @@
+"""Projector-camera calibration files written by ``cv2.FileStorage`` (YAML or XML).
+
+Layouts recognised (keys):
+
+- Moreno & Taubin "scan3d-capture" (``calibration.yml``): ``cam_K, cam_kc, proj_K,
+  proj_kc, R, T`` — from ``cv2.stereoCalibrate`` with the camera as view 1 and the
+  projector as view 2.
+- OpenCV stereo sample (``intrinsics.yml`` + ``extrinsics.yml``; pass both files or a
+  merged one): ``M1, D1, M2, D2, R, T`` — camera = 1, projector = 2.
+- kamino410 ``procam-calibration`` (``calibration_result.xml``): ``cam_int, cam_dist,
+  proj_int, proj_dist, rotation`` (written misspelt as ``roration``), ``translation``,
+  and ``img_shape`` = camera (rows, cols) — also ``stereoCalibrate(cam, proj)``.
+
+In all of them R, T come from ``cv2.stereoCalibrate``, whose R, T map points from view
+1 (camera) to view 2 (projector): ``X_p = R X_c + T``. fastneus stores the inverse,
+``proj_to_cam``. T is in the calibration target's units (usually mm) and converted to
+metres per ``units``.
+
+Pixel convention: OpenCV calibration puts integer pixel centres at integer coordinates
+(corner detection, decoded projector columns), fastneus at +0.5; both principal points
+are shifted by +0.5. Camera distortion is kept (``Scene`` undistorts at load);
+projector distortion cannot be modelled and is dropped with a warning.
+"""
+from __future__ import annotations
+
+import json
+import shutil
+import warnings
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+
+from fastneus.data.scene import FORMAT, VERSION, Camera, Projector, Scene, check_pose, image_size, rigid_inverse
+from fastneus.errors import FastneusError
+
+# layout name -> (cam K, cam dist, proj K, proj dist, R candidates, T)
+LAYOUTS = {
+    "moreno-taubin": ("cam_K", "cam_kc", "proj_K", "proj_kc", ("R",), "T"),
+    "opencv-stereo": ("M1", "D1", "M2", "D2", ("R",), "T"),
+    "kamino410": ("cam_int", "cam_dist", "proj_int", "proj_dist", ("rotation", "roration"), "translation"),
+}
+UNITS = {"mm": 1e-3, "cm": 1e-2, "m": 1.0}
+
+
+def _read_nodes(paths: Sequence[Path]) -> dict[str, tuple[Path, object]]:
+    """Every top-level key of the FileStorage files -> (file, value: ndarray | float | str)."""
+    import cv2
+
+    out: dict[str, tuple[Path, object]] = {}
+    for p in paths:
+        if not p.is_file():
+            raise FastneusError("calibration file not found", file=p)
+        try:
+            fs = cv2.FileStorage(str(p), cv2.FILE_STORAGE_READ)
+        except cv2.error as e:
+            raise FastneusError(f"cannot parse as OpenCV YAML/XML: {str(e).strip().splitlines()[-1]}",
+                                file=p) from None
+        if not fs.isOpened():
+            raise FastneusError("cannot open as OpenCV YAML/XML", file=p)
+        root = fs.root()
+        for key in root.keys():
+            node = fs.getNode(key)
+            if node.isString():
+                val: object = node.string()
+            elif node.isReal() or node.isInt():
+                val = node.real()
+            elif node.isSeq():
+                val = np.array([node.at(i).real() for i in range(node.size())], dtype=np.float64)
+            else:
+                m = node.mat()
+                val = None if m is None else np.asarray(m, dtype=np.float64)
+            out[key] = (p, val)
+        fs.release()
+    return out
+
+
+def _array(nodes, key: str, shapes: Sequence[tuple[int, ...]]) -> np.ndarray:
+    file, v = nodes[key]
+    if not isinstance(v, np.ndarray):
+        raise FastneusError("expected a matrix", file=file, field=key)
+    a = v.reshape(-1) if len(shapes[0]) == 1 else v
+    if not any(a.shape == s for s in shapes) and not (len(shapes[0]) == 1 and a.size in [s[0] for s in shapes]):
+        raise FastneusError(f"expected shape {' or '.join('x'.join(map(str, s)) for s in shapes)}, "
+                            f"got {'x'.join(map(str, v.shape))}", file=file, field=key)
+    if not np.all(np.isfinite(a)):
+        raise FastneusError("contains non-finite values (nan/inf)", file=file, field=key)
+    return a
+
+
+def _dist5(nodes, key: str) -> np.ndarray:
+    """OpenCV distortion (4, 5, 8, 12 or 14 coefficients) -> [5] k1 k2 p1 p2 k3."""
+    file = nodes[key][0]
+    d = _array(nodes, key, [(4,), (5,), (8,), (12,), (14,)])
+    if np.any(d[5:] != 0):
+        raise FastneusError("rational/thin-prism/tilt distortion terms (beyond k1 k2 p1 p2 k3) are not "
+                            "supported", file=file, field=key)
+    out = np.zeros(5)
+    out[: min(5, d.size)] = d[:5]
+    return out
+
+
+def _size(nodes, pairs, vecs, rows_cols) -> tuple[int, int] | None:
+    for kw, kh in pairs:
+        if kw in nodes and kh in nodes:
+            return int(round(float(np.asarray(nodes[kw][1]).reshape(-1)[0]))), \
+                int(round(float(np.asarray(nodes[kh][1]).reshape(-1)[0])))
+    for k in vecs:  # [width, height]
+        if k in nodes and isinstance(nodes[k][1], np.ndarray) and nodes[k][1].size == 2:
+            w, h = nodes[k][1].reshape(-1)
+            return int(w), int(h)
+    for k in rows_cols:  # numpy shape order: [rows, cols]
+        if k in nodes and isinstance(nodes[k][1], np.ndarray) and nodes[k][1].size in (2, 3):
+            h, w = nodes[k][1].reshape(-1)[:2]
+            return int(w), int(h)
+    return None
+
+
+def _parse_wh(v, what: str) -> tuple[int, int] | None:
+    if v is None:
+        return None
+    if isinstance(v, str):
+        try:
+            w, h = (int(x) for x in v.lower().split("x"))
+        except ValueError:
+            raise FastneusError(f"expected WIDTHxHEIGHT, got {v!r}", field=what) from None
+    else:
+        w, h = (int(x) for x in v)
+    if w < 1 or h < 1:
+        raise FastneusError(f"sizes must be positive, got {w}x{h}", field=what)
+    return w, h
+
+
+def read_procam_calibration(path, proj_size=None, units: str = "mm", cam_size=None) -> tuple[Camera, Projector]:
+    """Read a projector-camera calibration into a camera and a rig-attached projector.
+
+    Args:
+        path: a YAML/XML file written by ``cv2.FileStorage`` (or a list of files whose keys
+            are merged, e.g. OpenCV's ``intrinsics.yml`` + ``extrinsics.yml``).
+        proj_size: projector (width, height) or ``"WxH"`` when the file lacks it.
+        units: unit of T in the file (``mm``, ``cm`` or ``m``); converted to metres.
+        cam_size: camera (width, height) when the file lacks it.
+
+    Returns:
+        (camera ``cam0`` with K [3,3] in fastneus pixel convention and dist [5],
+        projector ``proj0`` with ``proj_to_cam`` [4,4] in metres).
+
+    Raises:
+        FastneusError: unknown layout, missing key, bad shape, non-finite values,
+            non-rotation R, unknown sizes or units.
+    """
+    paths = [Path(p) for p in (path if isinstance(path, (list, tuple)) else [path])]
+    if units not in UNITS:
+        raise FastneusError(f"unknown units {units!r}; use one of {sorted(UNITS)}", field="--units")
+    nodes = _read_nodes(paths)
+    file0 = paths[0]
+    layout = None
+    for name, (ck, _, pk, _, _, _) in LAYOUTS.items():
+        if ck in nodes or pk in nodes:
+            layout = name
+            break
+    if layout is None:
+        raise FastneusError("unknown calibration layout: expected cam_K/proj_K (Moreno-Taubin), "
+                            "M1/M2 (OpenCV stereo) or cam_int/proj_int (procam-calibration)", file=file0)
+    ck, cd, pk, pd, rks, tk = LAYOUTS[layout]
+    rk = next((k for k in rks if k in nodes), rks[0])
+    for key in (ck, cd, pk, pd, rk, tk):
+        if key not in nodes:
+            raise FastneusError(f"missing key ({layout} layout)", file=file0, field=key)
+
+    def K_of(key):
+        K = _array(nodes, key, [(3, 3)]).copy()
+        if K[0, 0] <= 0 or K[1, 1] <= 0 or not np.allclose(K[2], [0, 0, 1]):
+            raise FastneusError("expected [[fx, 0, cx], [0, fy, cy], [0, 0, 1]]", file=nodes[key][0], field=key)
+        K[0, 2] += 0.5  # OpenCV integer pixel centres -> fastneus (+0.5)
+        K[1, 2] += 0.5
+        return K
+
+    Kc, Kp = K_of(ck), K_of(pk)
+    dc, dp = _dist5(nodes, cd), _dist5(nodes, pd)
+    R = _array(nodes, rk, [(3, 3)])
+    T = _array(nodes, tk, [(3,)]) * UNITS[units]
+    X = np.eye(4)
+    X[:3, :3], X[:3, 3] = R, T
+    cam_to_proj = check_pose(X, nodes[rk][0], rk)  # X_p = R X_c + T (stereoCalibrate: view 1 -> view 2)
+    if np.any(dp):
+        warnings.warn(f"{file0}: projector distortion {dp.tolist()} is ignored (fastneus models the "
+                      "projector as a pinhole)", stacklevel=2)
+
+    cs = _size(nodes, [("cam_width", "cam_height"), ("image_width", "image_height")],
+               ["cam_size", "image_size", "imageSize"], ["img_shape", "cam_shape"]) or _parse_wh(cam_size, "--cam-size")
+    ps = _size(nodes, [("proj_width", "proj_height")], ["proj_size"], ["proj_shape"]) or _parse_wh(proj_size, "--proj-size")
+    if cs is None:
+        raise FastneusError("camera image size not in the file (cam_width/cam_height, image_size or "
+                            "img_shape); pass it (cam_size / --cam-size WxH, or give images)", file=file0)
+    if ps is None:
+        raise FastneusError("projector size not in the file (proj_width/proj_height or proj_size); "
+                            "pass --proj-size WxH", file=file0)
+    cam = Camera(id="cam0", K=Kc, width=cs[0], height=cs[1], dist=dc)
+    proj = Projector(id="proj0", K=Kp, width=ps[0], height=ps[1], proj_to_cam=rigid_inverse(cam_to_proj))
+    return cam, proj
+
+
+# --------------------------------------------------------------------------- scenes
+def _axes_meeting_point(c2ws: list[np.ndarray]) -> np.ndarray:
+    """[3] least-squares point closest to all optical axes (where the cameras look)."""
+    A = np.zeros((3, 3))
+    b = np.zeros(3)
+    for T in c2ws:
+        d = T[:3, 2] / np.linalg.norm(T[:3, 2])
+        M = np.eye(3) - np.outer(d, d)
+        A += M
+        b += M @ T[:3, 3]
+    return np.linalg.lstsq(A, b, rcond=None)[0]
+
+
+def _poses_from_scene_json(path: Path, n: int) -> tuple[list[np.ndarray], dict | None]:
+    file = path / "scene.json" if path.is_dir() else path
+    try:
+        d = json.loads(file.read_text())
+    except (OSError, ValueError) as e:
+        raise FastneusError(f"cannot read poses: {e}", file=file) from None
+    frames = d.get("frames") if isinstance(d, dict) else None
+    if not isinstance(frames, list):
+        raise FastneusError("expected a scene.json with a frames list", file=file, field="frames")
+    if len(frames) != n:
+        raise FastneusError(f"{len(frames)} frames but {n} images were given", file=file, field="frames")
+    poses = []
+    for i, f in enumerate(frames):
+        if not isinstance(f, dict) or "cam_to_world" not in f:
+            raise FastneusError("missing", file=file, field=f"frames[{i}].cam_to_world")
+        poses.append(check_pose(f["cam_to_world"], file, f"frames[{i}].cam_to_world"))
+    return poses, d.get("bounds")
+
+
+def make_scene_from_calibration(calib, images: Sequence, patterns: Sequence, poses, out, units: str = "mm",
+                                proj_size=None, colmap_scale: float = 1.0, bounds=None) -> Scene:
+    """Build and save a fastneus scene from a procam calibration, photos, patterns and poses.
+
+    Images and patterns are copied into ``out/image`` and ``out/pattern`` unchanged;
+    camera distortion stays in the scene (``Scene.image`` undistorts at load).
+
+    Args:
+        calib: a calibration file path (or list of paths) or a ``(Camera, Projector)`` pair.
+        images: N photo paths, frame order.
+        patterns: the pattern shown in each frame: N paths, or 1 path shown in every frame.
+        poses: a ``scene.json`` (its frames' ``cam_to_world`` in order) or a COLMAP text
+            model folder (``cameras.txt``, ``images.txt``; images matched by file name).
+        out: destination folder for the new scene.
+        units: unit of the calibration's T (``mm`` or ``m``).
+        proj_size: projector (width, height) when the calibration lacks it.
+        colmap_scale: metres per COLMAP unit. A COLMAP model has an arbitrary scale, but the
+            projector baseline is metric, so the two must agree; set it from a known
+            distance (e.g. the camera travel) — 1.0 assumes the model is in metres.
+        bounds: ``(center [3], radius)`` in metres; default from the poses file's bounds,
+            COLMAP's points3D.txt (median, 90th percentile distance x 1.2), or the
+            point the cameras look at.
+
+    Returns:
+        The saved, validated scene.
+    """
+    images = [Path(p) for p in images]
+    if not images:
+        raise FastneusError("no images given", field="--images")
+    n = len(images)
+    pats = [Path(p) for p in (patterns if isinstance(patterns, (list, tuple)) else [patterns])]
+    if len(pats) not in (1, n):
+        raise FastneusError(f"{len(pats)} patterns for {n} images: give one per image or one for all",
+                            field="--patterns")
+    wh0 = image_size(images[0])
+    if wh0 is None:
+        raise FastneusError("cannot read image", file=images[0])
+    if isinstance(calib, (tuple, list)) and len(calib) == 2 and isinstance(calib[0], Camera):
+        cam, proj = calib
+    else:
+        cam, proj = read_procam_calibration(calib, proj_size=proj_size, units=units, cam_size=wh0)
+    if (cam.width, cam.height) != wh0:
+        raise FastneusError(f"image is {wh0[0]}x{wh0[1]} but the calibration's camera is "
+                            f"{cam.width}x{cam.height}", file=images[0])
+
+    poses_path = Path(poses)
+    center = radius = None
+    if poses_path.is_dir() and not (poses_path / "scene.json").is_file():
+        from fastneus.formats.colmap import read_colmap_model
+
+        if colmap_scale <= 0:
+            raise FastneusError("must be > 0", field="--colmap-scale")
+        _, cimgs, pts = read_colmap_model(poses_path)
+        c2ws = []
+        for p in images:
+            im = cimgs.get(p.name)
+            if im is None:
+                raise FastneusError(f"image {p.name!r} is not in the COLMAP model", file=poses_path / "images.txt")
+            T = im.cam_to_world
+            T[:3, 3] *= colmap_scale
+            c2ws.append(T)
+        if pts is not None and len(pts) >= 10:
+            pts = pts * colmap_scale
+            center = np.median(pts, axis=0)
+            radius = 1.2 * float(np.percentile(np.linalg.norm(pts - center, axis=1), 90))
+    else:
+        c2ws, b = _poses_from_scene_json(poses_path, n)
+        if isinstance(b, dict) and "center" in b and "radius" in b:
+            center, radius = np.asarray(b["center"], np.float64), float(b["radius"])
+    if bounds is not None:
+        center, radius = np.asarray(bounds[0], np.float64), float(bounds[1])
+    if center is None:
+        center = _axes_meeting_point(c2ws)
+        radius = 0.5 * min(float(np.linalg.norm(T[:3, 3] - center)) for T in c2ws)
+
+    out = Path(out)
+    (out / "image").mkdir(parents=True, exist_ok=True)
+    (out / "pattern").mkdir(parents=True, exist_ok=True)
+    frames, pat_ids = [], {}
+    for i, p in enumerate(images):
+        if not p.is_file():
+            raise FastneusError("image not found", file=p)
+        dst = f"image/{i:03d}{p.suffix.lower()}"
+        shutil.copyfile(p, out / dst)
+        q = pats[0 if len(pats) == 1 else i]
+        if not q.is_file():
+            raise FastneusError("pattern not found", file=q)
+        key = str(q.resolve())
+        if key not in pat_ids:
+            pid = f"p{len(pat_ids):03d}"
+            shutil.copyfile(q, out / f"pattern/{pid}{q.suffix.lower()}")
+            pat_ids[key] = (pid, f"pattern/{pid}{q.suffix.lower()}")
+        frames.append({"image": dst, "camera": cam.id, "cam_to_world": c2ws[i].tolist(), "view": i,
+                       "projectors": {proj.id: {"pattern": pat_ids[key][0]}}})
+    data = {"format": FORMAT, "version": VERSION, "units": "m", "name": out.resolve().name,
+            "bounds": {"center": np.asarray(center).tolist(), "radius": float(radius)},
+            "cameras": {cam.id: {"K": cam.K.tolist(), "width": cam.width, "height": cam.height,
+                                 "dist": np.asarray(cam.dist).tolist()}},
+            "projectors": {proj.id: {"K": proj.K.tolist(), "width": proj.width, "height": proj.height,
+                                     "proj_to_cam": proj.proj_to_cam.tolist()}},
+            "patterns": {pid: {"file": f} for pid, f in pat_ids.values()},
+            "frames": frames,
+            "meta": {"source_format": "opencv-calibration", "poses": str(poses_path.resolve())}}
+    scene = Scene.from_dict(data, root=out)
+    scene.save(out)
+    return scene
