@@ -119,7 +119,7 @@ class Albedo:
             g = (P / (1.1 * self.radius)).clamp(-1, 1).view(1, -1, 1, 1, 3)
             val = sum(w * torch.nn.functional.grid_sample(lat, g, mode="bilinear", align_corners=True).view(3, -1).T
                       for lat, w in self.lattices)
-            return 0.15 + 0.8 * val
+            return 0.3 + 0.65 * val
         # vertex colours, barycentric on the hit face
         f = F[face.long()].long()
         a, b, c = V[f[:, 0]], V[f[:, 1]], V[f[:, 2]]
