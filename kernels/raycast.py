@@ -45,7 +45,7 @@ def _mesh_for(vertices: torch.Tensor, faces: torch.Tensor):
     hit = _MESH_CACHE.get(key)
     if hit is not None:
         return hit[0]
-    dev = _warp.device_of(vertices)
+    _warp.init()
     v = vertices.detach().to(torch.float32).contiguous()
     f = faces.detach().to(torch.int32).contiguous().reshape(-1)
     pts = wp.from_torch(v, dtype=wp.vec3)

@@ -229,3 +229,18 @@ def test_cli_synth(tmp_path, capsys):
     capsys.readouterr()
     assert main(["synth", "--shape", "sphere", "--views", "1", "--out", str(tmp_path / "other")]) == 2
     assert "--out" in capsys.readouterr().err
+
+
+def test_cli_synth_mesh_file(tmp_path):
+    box = trimesh.creation.box((3.0, 1.0, 0.5))
+    box.apply_translation((5.0, 0, 0))
+    box.export(tmp_path / "box.obj")
+    out = tmp_path / "boxscene"
+    assert main(["synth", "--mesh", str(tmp_path / "box.obj"), "--views", "1", "--size", "40x30",
+                 "--pattern", "colorline", "--albedo", "checker", "--out", str(out)]) == 0
+    s = Scene.load(out)
+    src = s.meta["source"]
+    assert src["mesh"].endswith("box.obj") and abs(src["scale"] * np.linalg.norm([1.5, 0.5, 0.25]) - 1) < 1e-6
+    v = trimesh.load(s.path(s.gt_mesh)).vertices
+    np.testing.assert_allclose(v.mean(axis=0), 0, atol=1e-6)  # centred, bounding radius 1
+    assert abs(np.linalg.norm(v, axis=1).max() - 1) < 1e-6 and s.mask(0).sum() > 20
