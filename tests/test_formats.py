@@ -398,7 +398,7 @@ def test_import_calib_with_colmap(tmp_path, rig, capsys):
     # poses from the scene.json just written give the same scene
     rc = main(["import-calib", str(tmp_path / "calib.yml"), "--images", str(tmp_path / "imgs"), "--patterns",
                str(tmp_path / "pats" / "000.png"), "--poses", str(tmp_path / "scene" / "scene.json"),
-               "--proj-size", "1024x768", "--out", str(tmp_path / "scene2")])
+               "--out", str(tmp_path / "scene2")])  # projector size from the pattern image
     assert rc == 0
     s2 = Scene.load(tmp_path / "scene2")
     assert len(s2.patterns) == 1

@@ -248,7 +248,8 @@ def make_scene_from_calibration(calib, images: Sequence, patterns: Sequence, pos
             model folder (``cameras.txt``, ``images.txt``; images matched by file name).
         out: destination folder for the new scene.
         units: unit of the calibration's T (``mm`` or ``m``).
-        proj_size: projector (width, height) when the calibration lacks it.
+        proj_size: projector (width, height) when the calibration lacks it (default: the
+            first pattern image's size).
         colmap_scale: metres per COLMAP unit. A COLMAP model has an arbitrary scale, but the
             projector baseline is metric, so the two must agree; set it from a known
             distance (e.g. the camera travel) — 1.0 assumes the model is in metres.
@@ -273,7 +274,9 @@ def make_scene_from_calibration(calib, images: Sequence, patterns: Sequence, pos
     if isinstance(calib, (tuple, list)) and len(calib) == 2 and isinstance(calib[0], Camera):
         cam, proj = calib
     else:
-        cam, proj = read_procam_calibration(calib, proj_size=proj_size, units=units, cam_size=wh0)
+        # the pattern images are the projector's frame buffer: their size is its resolution
+        cam, proj = read_procam_calibration(calib, proj_size=proj_size or image_size(pats[0]), units=units,
+                                            cam_size=wh0)
     if (cam.width, cam.height) != wh0:
         raise FastneusError(f"image is {wh0[0]}x{wh0[1]} but the calibration's camera is "
                             f"{cam.width}x{cam.height}", file=images[0])
