@@ -47,7 +47,7 @@ def stream_of(t: torch.Tensor):
     return wp.stream_from_torch(torch.cuda.current_stream(t.device))
 
 
-def to_wp(t: torch.Tensor, dtype=None, requires_grad: bool = False):
+def to_wp(t: torch.Tensor, dtype=None, requires_grad: bool = False, ctype: bool = False):
     """Zero-copy view of a contiguous torch tensor as a Warp array.
 
     Args:
@@ -55,9 +55,13 @@ def to_wp(t: torch.Tensor, dtype=None, requires_grad: bool = False):
         dtype: Warp dtype (e.g. ``wp.vec3`` for a [N, 3] float32 tensor); inferred when None.
         requires_grad: kept False: adjoints are passed explicitly as separate arrays so
             that Warp never allocates hidden gradient buffers.
+        ctype: return Warp's low-level array descriptor instead of a ``wp.array`` (about 4x
+            less host time per argument; only for passing straight to ``launch``).
     """
     if not t.is_contiguous():
         t = t.contiguous()
+    if ctype:
+        return wp.from_torch(t, dtype=dtype, requires_grad=requires_grad, return_ctype=True)
     return wp.from_torch(t, dtype=dtype, requires_grad=requires_grad)
 
 
