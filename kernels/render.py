@@ -15,6 +15,12 @@ Per sample i of a ray with direction d (a = cos_anneal, s = inv_s, dt = t1 - t0)
     Q(P)     = sum_k bilinear(pattern_k, K_k X / X.z - 0.5),  X = W_k [P, 1]  (0 if X.z <= 1e-6)
     c_i      = D_i + (i_r D_i + i_b) * Q(P_i)
     color = sum w c, texture = sum w D, opacity = sum w, depth = sum w (t0 + t1) / 2
+
+The forward saves T_i per sample ([S] float32); the backward scans each ray in reverse,
+recomputing alpha, Q and c, and folds the upstream gradients of all four outputs into one
+per-sample scalar v_i, so dL/dalpha_i = T_i v_i - (sum_{j>i} w_j v_j) / (1 - alpha_i) needs no
+subtraction of nearly equal totals. Shared parameters (inv_s, i_r, i_b, proj_W) are summed
+per ray first and added with one atomic per ray.
 """
 from __future__ import annotations
 
@@ -532,8 +538,9 @@ def render_pattern(
 ) -> dict:
     """NeuS rendering with pattern projection (Warp forward, hand-written Warp backward).
 
-    One thread per ray scans its packed samples ``offsets[r] .. offsets[r] + counts[r]``.
-    Differentiable in sdf, grad, color, pos, inv_s, i_r, i_b and proj_W; t0, t1, dirs,
+    One thread per ray scans its packed samples ``offsets[r] .. offsets[r] + counts[r]``
+    (``ray_index`` is accepted for the common signature but not read). Computes in float32
+    (other float inputs are cast). Differentiable in sdf, grad, color, pos, inv_s, i_r, i_b and proj_W; t0, t1, dirs,
     proj_K, patterns and the index tensors are constants. No host synchronisation; runs on
     torch's current stream of the inputs' device (cpu or cuda).
 
