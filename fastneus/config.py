@@ -40,6 +40,8 @@ class Config:
     max_samples_per_ray: int = 1024
     bound: str = "sphere"              # sphere | box
     background: float = 0.0            # background colour behind the object (synthetic data: black)
+    bright_fraction: float = 0.5       # share of rays drawn in proportion to pixel brightness: sparse
+                                       # laser lines in dark scenes are otherwise almost never sampled
 
     # --- occupancy grid ---
     occ_resolution: int = 128
@@ -65,14 +67,18 @@ class Config:
     view_dependent: bool = True        # colour network sees the view direction
     init_radius: float = 0.5           # sphere initialisation of the SDF (normalised units)
     variance_init: float = 0.3         # inv_s = exp(10 * v)
+    inv_s_floor_end: float = 1000.0    # inv_s >= a floor rising log-linearly from inv_s_floor_start
+    inv_s_floor_start: float = 20.0    # to this value over the first 60% of training (0 = learned only)
     normal_eps_min: float = 1e-3       # lower bound for the finite-difference step (normalised)
 
     # --- optimisation ---
     lr: float = 1e-2
-    lr_variance: float = 1e-3
+    lr_variance: float = 5e-3
     lr_illum: float = 1e-2
     adam_eps: float = 1e-15
     warmup_steps: int = 100            # linear lr warm-up
+    color_warmup_steps: int = 50       # geometry frozen while the colour net fits the image brightness:
+                                       # in dark scenes the init sphere is otherwise deleted, not darkened
     decay_to: float = 0.05             # final lr factor (cosine decay after warm-up)
     eikonal_weight: float = 0.1
     mask_weight: float = 0.0           # BCE on opacity vs mask (only when masks exist)
@@ -203,8 +209,9 @@ def load_config(config: str | None = None, overrides: list[str] | None = None,
             res = resources.files("fastneus.configs") / f"{config}.yaml"
             if not res.is_file():
                 raise FastneusError(f"unknown preset; presets: {', '.join(preset_names())}", field="--config")
-            data, label = _read_yaml(res, f"configs/{config}.yaml")
-        data.setdefault("preset", path.stem)
+            label = f"configs/{config}.yaml"
+            data = _read_yaml(res, label)
+        data.setdefault("preset", Path(config).stem)
         cfg = apply(cfg, data, label)
     if base:
         cfg = apply(cfg, base, "command line")

@@ -79,7 +79,7 @@ class RayBank:
         load_masks: keep masks (uint8) for the mask loss / metrics.
     """
 
-    def __init__(self, scene, frames: list[int], device, load_masks: bool = False):
+    def __init__(self, scene, frames: list[int], device, load_masks: bool = False, brightness_cdf: bool = False):
         self.frames = list(frames)
         self.device = torch.device(device)
         sizes, kinv, rot, org, chunks, masks = [], [], [], [], [], []
@@ -106,6 +106,11 @@ class RayBank:
         self.rot = torch.tensor(np.stack(rot), **f32)                        # [F, 3, 3]
         self.origin = torch.tensor(np.stack(org), **f32)                     # [F, 3]
         self.n_pixels = int((wh[:, 0] * wh[:, 1]).sum())
+        self.cdf = None
+        if brightness_cdf:
+            # brightness-proportional pixel distribution (float64: millions of pixels)
+            w = self.rgb.max(dim=1).values.double() / 255.0 + 1e-3
+            self.cdf = torch.cumsum(w, 0)
 
     def rays(self, fidx: torch.Tensor, u: torch.Tensor, v: torch.Tensor):
         """Rays through pixel centres.
@@ -122,8 +127,9 @@ class RayBank:
         d = d / d.norm(dim=-1, keepdim=True)
         return self.origin[fidx].contiguous(), d.contiguous()
 
-    def sample(self, n: int, generator: torch.Generator | None = None):
-        """``n`` random (frame, pixel) pairs, uniform over all pixels of all frames.
+    def sample(self, n: int, generator: torch.Generator | None = None, bright_fraction: float = 0.0):
+        """``n`` random (frame, pixel) pairs: uniform over all pixels of all frames, except a
+        ``bright_fraction`` share drawn in proportion to pixel brightness (needs ``brightness_cdf``).
 
         Returns:
             dict: fidx [n] int32, origins [n, 3], dirs [n, 3], rgb [n, 3] float in [0, 1],
@@ -131,6 +137,10 @@ class RayBank:
         """
         g = generator
         flat = torch.randint(0, self.n_pixels, (n,), device=self.device, generator=g)
+        nb = int(n * bright_fraction) if self.cdf is not None else 0
+        if nb > 0:
+            r = torch.rand(nb, device=self.device, generator=g, dtype=torch.float64) * self.cdf[-1]
+            flat[:nb] = torch.searchsorted(self.cdf, r).clamp_max(self.n_pixels - 1)
         fidx = torch.searchsorted(self.offset, flat, right=True) - 1
         local = flat - self.offset[fidx]
         w = self.wh[fidx, 0]

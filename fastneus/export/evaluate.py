@@ -169,7 +169,7 @@ def image_metrics(scene, renders: dict[int, dict]) -> dict:
 
 
 def illumination_metrics(trainer) -> dict:
-    i_r, i_b = (float(x) for x in trainer.illumination())
+    i_r, i_b = (float(x.detach()) for x in trainer.illumination())
     out = {"i_r": i_r, "i_b": i_b}
     ill = trainer.scene.illumination
     if ill is not None and ill.known:

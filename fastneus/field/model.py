@@ -60,6 +60,7 @@ class SDFField(nn.Module):
         # NeuS variance: inv_s = exp(10 v)
         self.variance = nn.Parameter(torch.tensor([cfg.variance_init], device=device))
         self.active_levels = cfg.levels
+        self.inv_s_floor = 0.0
         self.register_buffer("_tetra", _TETRA.to(device), persistent=False)
 
     @staticmethod
@@ -78,9 +79,17 @@ class SDFField(nn.Module):
             nn.init.normal_(lin.weight, 0.0, math.sqrt(2) / math.sqrt(d_out))
 
     # ------------------------------------------------------------------ geometry
-    def set_progress(self, step: int) -> None:
-        """Coarse-to-fine: enable one more hash level every ``c2f_steps_per_level`` steps."""
+    def set_progress(self, step: int, progress: float = 0.0) -> None:
+        """Coarse-to-fine levels and the sharpness floor for training ``step`` / ``progress`` in [0, 1].
+
+        One more hash level every ``c2f_steps_per_level`` steps; inv_s is kept above a floor rising
+        log-linearly from ``inv_s_floor_start`` to ``inv_s_floor_end`` over the first 60% of training:
+        the learned NeuS variance alone sharpens too slowly for a budget of a few thousand steps.
+        """
         c = self.cfg
+        if c.inv_s_floor_end > 0:
+            f = min(1.0, progress / 0.6)
+            self.inv_s_floor = math.exp(math.log(c.inv_s_floor_start) * (1 - f) + math.log(c.inv_s_floor_end) * f)
         if c.c2f_start_levels <= 0:
             self.active_levels = c.levels
         else:
@@ -144,14 +153,23 @@ class SDFField(nn.Module):
         return torch.sigmoid(self.color_net(torch.cat(parts, dim=-1)))
 
     def inv_s(self) -> torch.Tensor:
-        """[1] NeuS sharpness exp(10 v), clamped to a safe range."""
-        return torch.exp(self.variance * 10.0).clamp(1e-3, 1e6)
+        """[1] NeuS sharpness exp(10 v), at least the scheduled floor, at most 1e6."""
+        return torch.exp(self.variance * 10.0).clamp(max(1e-3, self.inv_s_floor), 1e6)
+
+    def init_color_bias(self, mean_rgb) -> None:
+        """Start D at the images' mean colour (logit of it), not at sigmoid(0) = 0.5 grey.
+
+        Args:
+            mean_rgb: [3] mean training pixel colour in [0, 1].
+        """
+        m = torch.as_tensor(mean_rgb, dtype=torch.float32).clamp(0.02, 0.98)
+        with torch.no_grad():
+            self.color_net[-1].bias.copy_(torch.log(m / (1 - m)).to(self.color_net[-1].bias.device))
 
     def param_groups(self, cfg):
-        """Adam parameter groups (hash table and MLPs at lr, variance at lr_variance)."""
+        """Adam parameter groups: geometry (hash table, SDF MLP), colour MLP, variance."""
         return [
-            {"params": [self.table], "lr": cfg.lr, "name": "grid"},
-            {"params": list(self.sdf_net.parameters()) + list(self.color_net.parameters()), "lr": cfg.lr,
-             "name": "mlp"},
+            {"params": [self.table] + list(self.sdf_net.parameters()), "lr": cfg.lr, "name": "geometry"},
+            {"params": list(self.color_net.parameters()), "lr": cfg.lr, "name": "color"},
             {"params": [self.variance], "lr": cfg.lr_variance, "name": "variance"},
         ]

@@ -50,12 +50,14 @@ class Trainer:
         if bad or not self.frames:
             raise FastneusError(f"frame indices {bad or '[]'} out of range 0..{n - 1}", field="frames")
         need_masks = cfg.mask_weight > 0
-        self.bank = RayBank(scene, self.frames, self.device, load_masks=need_masks)
+        self.bank = RayBank(scene, self.frames, self.device, load_masks=need_masks,
+                            brightness_cdf=cfg.bright_fraction > 0)
         if need_masks and not self.bank.has_masks:
             raise FastneusError("mask_weight > 0 but the scene has no masks for every training frame",
                                 field="mask_weight")
         self.proj = build_projection(scene, self.frames, self.device)
         self.field = SDFField(cfg, self.device)
+        self.field.init_color_bias(self.bank.rgb.float().mean(0) / 255.0)
         self.grid = OccupancyGrid(cfg.occ_resolution, self.device)
         ill = scene.illumination
         if cfg.illum_init == "ones" or ill is None:
@@ -74,6 +76,7 @@ class Trainer:
         self.n_rays = cfg.init_rays
         self.elapsed = 0.0          # training seconds, kept across resume
         self.skipped = 0            # NaN/Inf steps skipped
+        self.empty_steps = 0        # consecutive steps whose rays found no occupied cell
         self.history: list[dict] = []
         self.gen = torch.Generator(device=self.device)
         self.gen.manual_seed(cfg.seed)
@@ -95,8 +98,14 @@ class Trainer:
         else:
             f = c.decay_to + (1 - c.decay_to) * 0.5 * (1 + math.cos(math.pi * self.progress()))
         learn_illum = c.learn_illum and c.use_pattern and self.step >= c.illum_warmup_steps
+        frozen = self.step < c.color_warmup_steps
         for g in self.opt.param_groups:
-            g["lr"] = g["base_lr"] * f if g["name"] != "illum" else (g["base_lr"] if learn_illum else 0.0)
+            if g["name"] == "illum":
+                g["lr"] = g["base_lr"] if learn_illum else 0.0
+            elif frozen and g["name"] in ("geometry", "variance"):
+                g["lr"] = 0.0
+            else:
+                g["lr"] = g["base_lr"] * f
 
     def cos_anneal(self) -> float:
         return 1.0 if self.cfg.cos_anneal_steps <= 0 else min(1.0, self.step / self.cfg.cos_anneal_steps)
@@ -105,7 +114,7 @@ class Trainer:
         c = self.cfg
         if self.step < c.occ_warmup_steps:
             if self.step == 0:
-                self.grid.update(self.field.sdf, float(self.field.inv_s()), c.march_step, warmup=True)
+                self.grid.update(self.field.sdf, 0.0, c.march_step, warmup=True)
             return
         if self.step % c.occ_update_every == 0:
             # margin = half a cell diagonal keeps thin shells occupied once s is large
@@ -117,10 +126,10 @@ class Trainer:
     def train_step(self) -> dict | None:
         """One optimisation step. Returns scalars (as tensors) for logging, or None if skipped."""
         c = self.cfg
-        self.field.set_progress(self.step)
+        self.field.set_progress(self.step, self.progress())
         self.update_grid()
         self._set_lr()
-        batch = self.bank.sample(self.n_rays, self.gen)
+        batch = self.bank.sample(self.n_rays, self.gen, bright_fraction=c.bright_fraction)
         i_r, i_b = self.illumination()
         out = render_rays(self.field, self.grid.bits, self.grid.resolution, self.proj, batch["origins"],
                           batch["dirs"], batch["fidx"], c, i_r=i_r, i_b=i_b, cos_anneal=self.cos_anneal(),
@@ -130,8 +139,14 @@ class Trainer:
         mean_spr = max(1.0, s / self.n_rays)
         self.n_rays = int(min(c.max_rays, max(c.min_rays, 0.8 * self.n_rays + 0.2 * c.target_samples / mean_spr)))
         if s == 0:
+            # an empty grid would stall training for good: re-open it after a few empty steps
+            self.empty_steps += 1
+            if self.empty_steps >= 8:
+                self.grid.update(self.field.sdf, 0.0, c.march_step, warmup=True)
+                self.empty_steps = 0
             self.step += 1
             return None
+        self.empty_steps = 0
         pred = out["color"] + c.background * (1.0 - out["opacity"])[:, None]
         err = (pred - batch["rgb"]).abs()
         loss_rgb = err.mean()
@@ -193,7 +208,7 @@ class Trainer:
                 if self.step % c.log_every == 0 or self.step >= c.steps or rec is None and self.step == 1:
                     if rec is not None:
                         now = time.perf_counter()
-                        i_r, i_b = (float(x) for x in self.illumination())
+                        i_r, i_b = (float(x.detach()) for x in self.illumination())
                         last = {"step": self.step, "time": round(self.elapsed, 3), "loss": float(rec["loss"]),
                                 "l1": float(rec["l1"]), "psnr": _psnr(float(rec["mse"])), "eik": float(rec["eik"]),
                                 "i_r": i_r, "i_b": i_b, "inv_s": float(self.field.inv_s()),
@@ -237,11 +252,11 @@ class Trainer:
             self.log_ib.copy_(st["log_ib"].to(self.device))
         self.step, self.elapsed = int(st["step"]), float(st.get("elapsed", 0.0))
         self.n_rays, self.skipped = int(st.get("n_rays", self.n_rays)), int(st.get("skipped", 0))
-        self.field.set_progress(self.step)
+        self.field.set_progress(self.step, self.progress())
         if with_optimizer:
             self.opt.load_state_dict(st["optimizer"])
             for g in self.opt.param_groups:  # base_lr may differ if the config changed
-                g["base_lr"] = {"grid": self.cfg.lr, "mlp": self.cfg.lr, "variance": self.cfg.lr_variance,
+                g["base_lr"] = {"geometry": self.cfg.lr, "color": self.cfg.lr, "variance": self.cfg.lr_variance,
                                 "illum": self.cfg.lr_illum}[g["name"]]
         if "gen" in st and self.device.type == "cpu":
             self.gen.set_state(st["gen"])
