@@ -123,7 +123,11 @@ def depth_to_z(scene, i: int, t: np.ndarray, h: int, w: int) -> np.ndarray:
 
 
 def render_frames(trainer, frames: list[int], chunk: int = 8192) -> dict[int, dict]:
-    """Full-image renders (numpy, [H,W,...]) of scene frames with the trained model."""
+    """Full-image renders (numpy, [H,W,...]) of scene frames with the trained model.
+
+    A trainer with its own renderer (``render_image_rays(origins, dirs, fidx, chunk, proj=...)``,
+    e.g. the reference baseline) is used through it; otherwise the fastneus field and grid.
+    """
     scene, cfg = trainer.scene, trainer.cfg
     bank = RayBank(scene, frames, trainer.device)
     proj = build_projection(scene, frames, trainer.device)
@@ -132,8 +136,11 @@ def render_frames(trainer, frames: list[int], chunk: int = 8192) -> dict[int, di
     for a, i in enumerate(frames):
         o, d, (h, w) = bank.image_rays(a)
         fidx = torch.full((o.shape[0],), a, dtype=torch.int32, device=o.device)
-        r = render_image(trainer.field, trainer.grid.bits, trainer.grid.resolution, proj, o, d, fidx, cfg,
-                         i_r=i_r, i_b=i_b, chunk=chunk)
+        if hasattr(trainer, "render_image_rays"):
+            r = trainer.render_image_rays(o, d, fidx, chunk=chunk, proj=proj)
+        else:
+            r = render_image(trainer.field, trainer.grid.bits, trainer.grid.resolution, proj, o, d, fidx, cfg,
+                             i_r=i_r, i_b=i_b, chunk=chunk)
         bg = cfg.background * (1 - r["opacity"])[:, None]
         out[i] = {
             "color": (r["color"] + bg).numpy().reshape(h, w, 3),
