@@ -50,6 +50,7 @@ class BaselineConfig:
     perturb: bool = True
     bound: str = "sphere"              # for meshing (the sampler always uses the unit sphere)
     background: float = 0.0
+    eval_chunk: int = 2048             # cap on rays per chunk when rendering images (memory)
     # networks
     multires: int = 6                  # PE frequencies of x
     multires_view: int = 4             # PE frequencies of the view direction
@@ -450,6 +451,7 @@ class BaselineTrainer:
             dict of CPU tensors: color [N,3], texture [N,3], opacity [N], depth [N], normal [N,3].
         """
         keys = ("color", "texture", "opacity", "depth", "normal")
+        chunk = max(1, min(chunk, self.cfg.eval_chunk))
         outs: dict[str, list[torch.Tensor]] = {k: [] for k in keys}
         for a in range(0, origins.shape[0], chunk):
             sl = slice(a, a + chunk)

@@ -1,0 +1,536 @@
+"""Speed comparison: fastneus (Warp kernels), fastneus (torch twins) and the paper-faithful
+ActiveNeuS baseline (NeuS MLPs, plain torch), each trained for the same wall-clock budgets.
+
+    python scripts/speed_compare.py SCENE --device cpu|cuda --budgets 10,30,120
+        [--target-chamfer MM] [--out DIR] [--no-md] [--methods warp,torch,baseline]
+        [--breakdown] [--set key=value ...] [--baseline-set key=value ...]
+
+One training run per method up to the largest budget. The clock (training time only,
+device-synchronised after every step) is paused at each evaluation point: the budgets plus a
+few geometrically spaced earlier times and t = 0. There the model is meshed (extract_mesh,
+256^3 on GPU / 64^3 on CPU) and scored with geometry_metrics (Chamfer GT->reconstruction, mm),
+and one frame is rendered for PSNR (with the pattern, vs the photo): the held-out last frame
+when the scene has >= 3 frames (training uses the others), else frame 0. On GPU the whole
+image is rendered (render_frames); on CPU a fixed random subset of its pixels (--psnr-pixels,
+same pixels for every method), because a full image through the baseline's 8x256 MLP with
+128 samples per ray takes minutes there.
+
+Reported per method and budget: steps, steps/s, training samples/s (composited samples:
+fastneus's marched samples, the baseline's 64 + 64 per ray), peak memory (GPU:
+torch.cuda.max_memory_allocated over training, torch's allocator only; CPU: the process's
+maxrss, each method in its own process unless --no-isolate), Chamfer and PSNR at the budget,
+and the training time to first reach the target Chamfer (default: the baseline's Chamfer at
+the largest budget), read off the evaluation points (so quantised to them).
+
+fastneus uses the fewview preset on CUDA and cpu-quick on CPU, with time_budget = the largest
+budget (its cosine lr and inv_s-floor schedules span that budget, so an early budget sees an
+early-schedule model). The baseline keeps the paper's step-based schedule (lr warm-up 5000
+steps, ...), which is what "the paper's method for the same wall-clock time" means.
+
+--breakdown (always on with --device cuda) re-does fastneus training steps phase by phase,
+with a device synchronisation between phases, after the comparison run (the trained state):
+median ms per phase over --breakdown-steps steps; the real trainer is not instrumented.
+
+Outputs in --out: speed-compare-<device>.json, .md, chamfer-vs-time-<device>.png; the
+Markdown is printed and (unless --no-md) written to the "speed-compare-<device>" section of
+docs/BENCHMARKS.md.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import resource
+import statistics
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from benchutil import ROOT, git_rev, machine, md_table, update_section, write_json
+
+METHODS = ("warp", "torch", "baseline")
+LABELS = {"warp": "fastneus (Warp)", "torch": "fastneus (torch twins)", "baseline": "ActiveNeuS baseline (NeuS MLP)"}
+PHASES = ("ray generation", "marching", "hash encoding", "MLPs", "rendering", "loss + backward", "optimiser",
+          "occupancy update")
+
+
+# ----------------------------------------------------------------------------- helpers
+def sync(device: str) -> None:
+    if device.startswith("cuda"):
+        torch.cuda.synchronize()
+
+
+def peak_mem_mb(device: str) -> float:
+    """GPU: torch's peak allocation since the last reset; CPU: the process's peak RSS."""
+    if device.startswith("cuda"):
+        return torch.cuda.max_memory_allocated() / 2 ** 20
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # Linux: KiB
+
+
+def eval_times(budgets: list[float], extra: int) -> list[float]:
+    """t = 0, the budgets, and ``extra`` halvings of the largest budget below it (geometric spacing)."""
+    top = max(budgets)
+    ts = {0.0, *budgets}
+    ts.update(top * 2.0 ** -k for k in range(1, extra + 1))
+    return sorted(round(t, 3) for t in ts)
+
+
+def parse_sets(items: list[str]) -> dict[str, str]:
+    out = {}
+    for it in items or []:
+        if "=" not in it:
+            raise SystemExit(f"expected key=value, got {it!r}")
+        k, v = it.split("=", 1)
+        out[k.strip()] = v
+    return out
+
+
+def split_frames(scene) -> tuple[list[int], int, bool]:
+    """(training frames, evaluation frame, whether it is held out)."""
+    n = len(scene.frames)
+    if n >= 3:
+        return list(range(n - 1)), n - 1, True
+    return list(range(n)), 0, False
+
+
+# ----------------------------------------------------------------------------- trainers
+def make_trainer(method: str, scene, args, out: Path, frames: list[int], warmup: bool = False):
+    """A fastneus Trainer (backend warp or torch) or the baseline trainer."""
+    if method == "baseline":
+        from fastneus.baselines import BaselineTrainer
+
+        sets = parse_sets(args.baseline_set)
+        if warmup:
+            sets["n_rays"] = "16"
+        return BaselineTrainer(scene, out, args.device, frames=frames, **sets)
+    from fastneus.config import load_config
+    from fastneus.train.trainer import Trainer
+
+    preset = "fewview" if args.device.startswith("cuda") else "cpu-quick"
+    ov = [f"backend={method}", "steps=100000000", f"time_budget={max(args.budgets)}",
+          f"frames={json.dumps(frames)}", "log_every=1000000", "save_every=100000000"] + list(args.set)
+    cfg = load_config(preset, ov)
+    return Trainer(scene, cfg, out, args.device)
+
+
+def warm_up(method: str, scene, args, out: Path, frames: list[int]) -> None:
+    """Load/compile kernels, CUDA context and BLAS handles on a throwaway trainer (not timed)."""
+    tr = make_trainer(method, scene, args, out / "warmup", frames, warmup=True)
+    for _ in range(2):
+        tr.train_step()
+    if method != "baseline":
+        c = tr.cfg
+        tr.grid.update(tr.field.sdf, 20.0, c.march_step, threshold=c.occ_threshold, backend=c.backend)
+        tr.train_step()
+    sync(args.device)
+    del tr
+    if args.device.startswith("cuda"):
+        torch.cuda.empty_cache()
+
+
+# ----------------------------------------------------------------------------- evaluation
+@torch.no_grad()
+def render_rays_any(trainer, o, d, fidx, proj, chunk: int) -> dict:
+    """Render rays with either kind of trainer (no gradients kept)."""
+    if hasattr(trainer, "render_image_rays"):
+        return trainer.render_image_rays(o, d, fidx, chunk=chunk, proj=proj)
+    from fastneus.field.renderer import render_image
+
+    i_r, i_b = (x.detach() for x in trainer.illumination())
+    return render_image(trainer.field, trainer.grid.bits, trainer.grid.resolution, proj, o, d, fidx, trainer.cfg,
+                        i_r=i_r, i_b=i_b, chunk=chunk)
+
+
+def psnr_subset(trainer, scene, frame: int, n_pix: int, chunk: int) -> float:
+    """PSNR (with the pattern, vs the photo) on ``n_pix`` fixed random pixels of ``frame``."""
+    from fastneus.sampling import RayBank, build_projection
+
+    bank = RayBank(scene, [frame], trainer.device)
+    proj = build_projection(scene, [frame], trainer.device)
+    w, h = (int(x) for x in bank.wh[0].tolist())
+    rng = np.random.default_rng(1234)  # the same pixels for every method and time
+    flat = torch.as_tensor(rng.choice(w * h, size=min(n_pix, w * h), replace=False), device=trainer.device)
+    col, row = flat % w, flat // w
+    fidx0 = torch.zeros_like(flat)
+    o, d = bank.rays(fidx0, col.float() + 0.5, row.float() + 0.5)
+    r = render_rays_any(trainer, o, d, fidx0.to(torch.int32), proj, chunk)
+    pred = r["color"] + trainer.cfg.background * (1 - r["opacity"])[:, None]
+    gt = bank.rgb[flat].float().cpu() / 255.0
+    mse = float(((pred.clamp(0, 1) - gt) ** 2).mean())
+    return -10 * math.log10(max(mse, 1e-12))
+
+
+def evaluate(trainer, scene, args, frames: list[int], eval_frame: int) -> dict:
+    """Chamfer (mm) of the mesh and PSNR of the evaluation frame (not timed)."""
+    from fastneus.export.evaluate import geometry_metrics, image_metrics, render_frames
+    from fastneus.export.mesh import extract_mesh
+
+    t = time.perf_counter()
+    mesh = extract_mesh(trainer.field, scene, args.mesh_res, trainer.device, bound=trainer.cfg.bound)
+    g = geometry_metrics(mesh, scene, frames, n_points=args.points)
+    if args.psnr_pixels > 0:
+        psnr = psnr_subset(trainer, scene, eval_frame, args.psnr_pixels, args.chunk)
+    else:
+        psnr = image_metrics(scene, render_frames(trainer, [eval_frame], chunk=args.chunk))["psnr_pattern"]
+    return {"chamfer_mm": g.get("chamfer_gt2rec_mm", math.nan), "chamfer_sym_mm": g.get("chamfer_sym_mm", math.nan),
+            "fscore": g.get("fscore", math.nan), "psnr": psnr, "eval_s": round(time.perf_counter() - t, 2)}
+
+
+# ----------------------------------------------------------------------------- per-phase breakdown
+class PhaseTimer:
+    """Accumulates device-synchronised wall time per phase for one step."""
+
+    def __init__(self, device: str):
+        self.device, self.ms = device, {p: 0.0 for p in PHASES}
+        sync(device)
+        self.t = time.perf_counter()
+
+    def lap(self, phase: str) -> None:
+        sync(self.device)
+        now = time.perf_counter()
+        self.ms[phase] += (now - self.t) * 1000
+        self.t = now
+
+
+def _sdf_and_grad_phased(field, x: torch.Tensor, pt: PhaseTimer):
+    """``SDFField.sdf_and_grad`` split into hash encoding and MLP phases (same maths)."""
+    n = x.shape[0]
+    eps = field.normal_eps()
+    taps = x[None, :, :] + eps * field._tetra[:, None, :]
+    xa = torch.cat([x, taps.reshape(-1, 3)], 0)
+    u = ((xa + 1.0) * 0.5).clamp(0.0, 1.0)
+    feats = field.encode(u.contiguous(), field.table, field.grid_cfg, field.active_levels)
+    pt.lap("hash encoding")
+    out = field.sdf_net(torch.cat([xa, feats], dim=-1))
+    sdf, geo = out[:n, 0], out[:n, 1:]
+    f_taps = out[n:, 0].reshape(4, n)
+    grad = (f_taps[:, :, None] * field._tetra[:, None, :]).sum(0) / (4.0 * eps)
+    pt.lap("MLPs")
+    return sdf, geo, grad
+
+
+def phased_step(tr, pt: PhaseTimer) -> int:
+    """One fastneus training step re-done phase by phase (mirrors Trainer.train_step).
+
+    The occupancy update runs every step here and is reported amortised (/ occ_update_every).
+    Returns the number of samples.
+    """
+    from fastneus.kernels import get_op
+
+    c = tr.cfg
+    tr.field.set_progress(tr.step, tr.progress())
+    tr.grid.update(tr.field.sdf, float(tr.field.inv_s().detach()), c.march_step, threshold=c.occ_threshold,
+                   margin=math.sqrt(3) / tr.grid.resolution, backend=c.backend)
+    pt.lap("occupancy update")
+    tr._set_lr()
+    batch = tr.bank.sample(tr.n_rays, tr.gen, bright_fraction=c.bright_fraction)
+    o, d, fidx = batch["origins"], batch["dirs"], batch["fidx"]
+    n = o.shape[0]
+    pt.lap("ray generation")
+    jit = torch.rand(n, device=o.device)
+    offsets, counts, t0, t1, ray_index = get_op("march_rays", c.backend)(
+        o, d, tr.grid.bits, tr.grid.resolution, c.march_step, c.max_samples_per_ray, jit, c.bound, 0.0)
+    s = t0.shape[0]
+    ri = ray_index.long()
+    d_s = d[ri]
+    pos = o[ri] + d_s * ((t0 + t1) * 0.5)[:, None]
+    pt.lap("marching")
+    if s == 0:
+        tr.step += 1
+        return 0
+    sdf, geo, grad = _sdf_and_grad_phased(tr.field, pos, pt)
+    color = tr.field.color(pos, grad, d_s, geo)
+    pt.lap("MLPs")
+    i_r, i_b = tr.illumination()
+    out = get_op("render_pattern", c.backend)(
+        sdf, grad, color, pos, t0, t1, ray_index, offsets, counts, d, fidx, tr.proj.K, tr.proj.W,
+        tr.proj.pattern if c.use_pattern else torch.full_like(tr.proj.pattern, -1), tr.proj.store,
+        tr.field.inv_s(), float(tr.cos_anneal()), i_r, i_b)
+    pt.lap("rendering")
+    n_rand = max(256, tr.n_rays // 4)
+    xr = torch.rand(n_rand, 3, device=o.device, generator=tr.gen) * 2 - 1
+    pt.lap("ray generation")
+    _, _, grad_r = _sdf_and_grad_phased(tr.field, xr, pt)
+    pred = out["color"] + c.background * (1.0 - out["opacity"])[:, None]
+    loss = (pred - batch["rgb"]).abs().mean()
+    loss = loss + c.eikonal_weight * ((torch.cat([grad, grad_r]).norm(dim=-1) - 1.0) ** 2).mean()
+    tr.opt.zero_grad(set_to_none=True)
+    loss.backward()
+    pt.lap("loss + backward")
+    tr.opt.step()
+    tr.step += 1
+    pt.lap("optimiser")
+    return s
+
+
+def breakdown(tr, device: str, steps: int, warmup: int = 5) -> dict:
+    """Median ms per phase over ``steps`` phased steps (after ``warmup``)."""
+    per: dict[str, list[float]] = {p: [] for p in PHASES}
+    samples = []
+    for i in range(warmup + steps):
+        pt = PhaseTimer(device)
+        s = phased_step(tr, pt)
+        if i >= warmup:
+            pt.ms["occupancy update"] /= tr.cfg.occ_update_every
+            for p in PHASES:
+                per[p].append(pt.ms[p])
+            samples.append(s)
+    med = {p: statistics.median(v) for p, v in per.items()}
+    total = sum(med.values())
+    return {"steps": steps, "rays": tr.n_rays, "samples_median": statistics.median(samples),
+            "occ_update_every": tr.cfg.occ_update_every, "total_ms": total,
+            "phases": [{"phase": p, "ms": med[p], "share_pct": 100 * med[p] / max(total, 1e-9)} for p in PHASES]}
+
+
+# ----------------------------------------------------------------------------- one method
+def run_method(method: str, args) -> dict:
+    """Train one method up to the largest budget, evaluating at each evaluation point."""
+    from fastneus.formats.detect import load_scene
+
+    torch.manual_seed(0)
+    scene = load_scene(Path(args.scene))
+    frames, eval_frame, held = split_frames(scene)
+    out = Path(args.out) / method
+    cuda = args.device.startswith("cuda")
+    if not args.no_warmup:
+        warm_up(method, scene, args, out, frames)
+    tr = make_trainer(method, scene, args, out, frames)
+    if cuda:
+        torch.cuda.reset_peak_memory_stats()
+    times = eval_times(args.budgets, args.extra_points)
+    clock, steps, samples, peak_train = 0.0, 0, 0, 0.0
+    points, cache = [], None
+    print(f"[{method}] training to {max(args.budgets)} s; evaluation at {times}", flush=True)
+    for t_eval in times:
+        while clock < t_eval:
+            t0 = time.perf_counter()
+            rec = tr.train_step()
+            sync(args.device)  # the step's GPU work belongs to its time
+            clock += time.perf_counter() - t0
+            tr.elapsed = clock  # drives fastneus's time-based schedules, as in Trainer.fit
+            steps += 1
+            if rec is not None:
+                samples += int(rec["samples"])
+        if cuda:
+            peak_train = max(peak_train, peak_mem_mb(args.device))
+        # a model that has not stepped since the last evaluation scores the same
+        ev = cache[1] if cache is not None and cache[0] == tr.step else evaluate(tr, scene, args, frames, eval_frame)
+        cache = (tr.step, ev)
+        p = {"t_target": t_eval, "t": round(clock, 3), "steps": steps, "samples": samples,
+             "steps_per_s": steps / clock if clock > 0 else 0.0, "samples_per_s": samples / clock if clock > 0 else 0.0,
+             "peak_mem_mb": peak_train if cuda else peak_mem_mb(args.device), **ev}
+        points.append(p)
+        print(f"[{method}] t={clock:7.2f}s steps={steps:6d} chamfer={p['chamfer_mm']:.2f} mm "
+              f"psnr={p['psnr']:.2f} dB (eval {ev['eval_s']} s)", flush=True)
+        if cuda:
+            torch.cuda.reset_peak_memory_stats()  # evaluation allocations do not count as training peak
+    res = {"method": method, "label": LABELS[method], "points": points, "eval_frame": eval_frame,
+           "eval_frame_held_out": held, "train_frames": frames,
+           "config": {k: (list(v) if isinstance(v, tuple) else v) for k, v in tr.cfg.to_dict().items()}}
+    if method != "baseline" and (args.breakdown or cuda):
+        res["breakdown"] = breakdown(tr, args.device, args.breakdown_steps)
+    return res
+
+
+# ----------------------------------------------------------------------------- report
+def time_to_target(points: list[dict], target: float) -> float | None:
+    for p in points:
+        if p["chamfer_mm"] <= target:
+            return p["t"]
+    return None
+
+
+def plot(results: list[dict], target: float | None, path: Path, title: str) -> None:
+    """Chamfer vs training time (log axis), drawn with OpenCV."""
+    import cv2
+
+    W, H, L, R, T, B = 960, 600, 90, 30, 50, 70
+    img = np.full((H, W, 3), 255, np.uint8)
+    pts = [(p["t"], p["chamfer_mm"]) for r in results for p in r["points"]
+           if p["t"] > 0 and math.isfinite(p["chamfer_mm"])]
+    if not pts:
+        cv2.imwrite(str(path), img)
+        return
+    ts, cs = [a for a, _ in pts], [b for _, b in pts] + ([target] if target and math.isfinite(target) else [])
+    lx0, lx1 = math.floor(math.log10(min(ts))), math.ceil(math.log10(max(ts)))
+    lx1 = max(lx1, lx0 + 1)
+    y0, y1 = 0.0, max(cs) * 1.05
+    fx = lambda t: int(L + (math.log10(t) - lx0) / (lx1 - lx0) * (W - L - R))  # noqa: E731
+    fy = lambda c: int(H - B - (c - y0) / (y1 - y0) * (H - T - B))  # noqa: E731
+    black, grey = (0, 0, 0), (200, 200, 200)
+    font = cv2.FONT_HERSHEY_SIMPLEX
+    for e in range(lx0, lx1 + 1):
+        for m in (1, 2, 5):
+            t = m * 10.0 ** e
+            if 10 ** lx0 <= t <= 10 ** lx1:
+                cv2.line(img, (fx(t), T), (fx(t), H - B), grey, 1)
+                cv2.putText(img, f"{t:g}", (fx(t) - 12, H - B + 20), font, 0.45, black, 1, cv2.LINE_AA)
+    for k in range(6):
+        c = y0 + (y1 - y0) * k / 5
+        cv2.line(img, (L, fy(c)), (W - R, fy(c)), grey, 1)
+        cv2.putText(img, f"{c:.3g}", (8, fy(c) + 5), font, 0.45, black, 1, cv2.LINE_AA)
+    cv2.rectangle(img, (L, T), (W - R, H - B), black, 1)
+    cv2.putText(img, "training time (s, log)", (W // 2 - 90, H - 20), font, 0.55, black, 1, cv2.LINE_AA)
+    cv2.putText(img, "Chamfer GT->rec (mm)", (8, T - 18), font, 0.55, black, 1, cv2.LINE_AA)
+    cv2.putText(img, title, (L + 200, T - 18), font, 0.5, black, 1, cv2.LINE_AA)
+    colors = {"warp": (40, 120, 230), "torch": (60, 170, 60), "baseline": (200, 60, 60)}  # BGR
+    if target and math.isfinite(target):
+        y = fy(target)
+        for x in range(L, W - R, 12):
+            cv2.line(img, (x, y), (min(x + 6, W - R), y), (120, 120, 120), 1)
+        cv2.putText(img, f"target {target:.3g} mm", (W - R - 150, y - 6), font, 0.45, (90, 90, 90), 1, cv2.LINE_AA)
+    for j, r in enumerate(results):
+        col = colors.get(r["method"], (0, 0, 0))
+        xy = [(fx(p["t"]), fy(p["chamfer_mm"])) for p in r["points"] if p["t"] > 0 and math.isfinite(p["chamfer_mm"])]
+        for a, b in zip(xy, xy[1:]):
+            cv2.line(img, a, b, col, 2, cv2.LINE_AA)
+        for a in xy:
+            cv2.circle(img, a, 4, col, -1, cv2.LINE_AA)
+        cv2.line(img, (L + 15, T + 20 + 22 * j), (L + 45, T + 20 + 22 * j), col, 2)
+        cv2.putText(img, r["label"], (L + 52, T + 25 + 22 * j), font, 0.5, black, 1, cv2.LINE_AA)
+    cv2.imwrite(str(path), img)
+
+
+def summarise(results: list[dict], args) -> tuple[list[dict], float | None, str]:
+    """Rows per method and budget, the target Chamfer and where it came from."""
+    top = max(args.budgets)
+    byname = {r["method"]: r for r in results}
+    if args.target_chamfer is not None:
+        target, src = args.target_chamfer, "given"
+    elif "baseline" in byname:
+        bp = [p for p in byname["baseline"]["points"] if p["t_target"] == round(top, 3)]
+        target, src = (bp[0]["chamfer_mm"], f"baseline at {top:g} s") if bp else (None, "none")
+    else:
+        target, src = None, "none"
+    t_base = time_to_target(byname["baseline"]["points"], target) if target is not None and "baseline" in byname else None
+    rows = []
+    for r in results:
+        ttt = time_to_target(r["points"], target) if target is not None else None
+        for b in sorted(args.budgets):
+            p = next(p for p in r["points"] if p["t_target"] == round(b, 3))
+            row = {"method": r["label"], "budget_s": b, "train_s": p["t"], "steps": p["steps"],
+                   "steps/s": p["steps_per_s"], "samples/s": p["samples_per_s"], "peak_mem_MB": p["peak_mem_mb"],
+                   "chamfer_mm": p["chamfer_mm"], "psnr_dB": p["psnr"],
+                   "t_to_target_s": "not reached" if ttt is None and target is not None else (ttt if ttt is not None else ""),
+                   }
+            if ttt is not None and t_base:
+                row["speed-up_to_target"] = f"{t_base / max(ttt, 1e-9):.1f}x" if ttt > 0 else "at t=0"
+            rows.append(row)
+    return rows, target, src
+
+
+def breakdown_md(results: list[dict]) -> str:
+    parts = []
+    for r in results:
+        bd = r.get("breakdown")
+        if not bd:
+            continue
+        rows = [{"phase": p["phase"], "ms": p["ms"], "share_%": p["share_pct"]} for p in bd["phases"]]
+        rows.append({"phase": "**total**", "ms": bd["total_ms"], "share_%": 100.0})
+        parts.append(f"Per-phase breakdown, {r['label']} (median of {bd['steps']} steps after the comparison run; "
+                     f"{bd['rays']} rays, {bd['samples_median']:.0f} samples per step; occupancy update amortised "
+                     f"over {bd['occ_update_every']} steps; device synchronised between phases, so the sum exceeds "
+                     f"an unsynchronised step):\n\n" + md_table(rows, ["phase", "ms", "share_%"]))
+    return "\n".join(parts)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("scene", help="scene folder (any format fastneus reads)")
+    ap.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
+    ap.add_argument("--budgets", default="10,30,120", help="comma-separated training-time budgets (s)")
+    ap.add_argument("--methods", default="warp,torch,baseline")
+    ap.add_argument("--target-chamfer", type=float, default=None, help="mm (default: the baseline's at the largest budget)")
+    ap.add_argument("--out", default="/tmp/fastneus-speed-compare")
+    ap.add_argument("--no-md", action="store_true", help="do not write docs/BENCHMARKS.md")
+    ap.add_argument("--extra-points", type=int, default=4, help="halvings of the largest budget also evaluated")
+    ap.add_argument("--mesh-res", type=int, default=None, help="marching-cubes grid (default 256 GPU / 64 CPU)")
+    ap.add_argument("--points", type=int, default=50_000, help="surface points per side for Chamfer")
+    ap.add_argument("--psnr-pixels", type=int, default=None,
+                    help="random pixels of the eval frame for PSNR; 0 = whole image (default: 0 GPU / 1024 CPU)")
+    ap.add_argument("--chunk", type=int, default=None, help="rays per rendering chunk")
+    ap.add_argument("--breakdown", action="store_true", help="per-phase step breakdown (always on with cuda)")
+    ap.add_argument("--breakdown-steps", type=int, default=50)
+    ap.add_argument("--set", nargs="*", default=[], help="fastneus config key=value for both backends")
+    ap.add_argument("--baseline-set", nargs="*", default=[], help="baseline config key=value (e.g. n_rays=256)")
+    ap.add_argument("--threads", type=int, default=None,
+                    help="torch CPU threads (default: torch's; 1 is faster for small ops on shared cores)")
+    ap.add_argument("--no-warmup", action="store_true", help="skip the untimed kernel/BLAS warm-up")
+    ap.add_argument("--no-isolate", action="store_true", help="run all methods in this process")
+    ap.add_argument("--worker", default=None, help=argparse.SUPPRESS)
+    ap.add_argument("--worker-out", default=None, help=argparse.SUPPRESS)
+    args = ap.parse_args()
+    cuda = args.device.startswith("cuda")
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    args.budgets = sorted(float(b) for b in args.budgets.split(","))
+    args.mesh_res = args.mesh_res or (256 if cuda else 64)
+    args.psnr_pixels = (0 if cuda else 1024) if args.psnr_pixels is None else args.psnr_pixels
+    args.chunk = args.chunk or (8192 if cuda else 2048)
+
+    if args.worker:
+        write_json(Path(args.worker_out), run_method(args.worker, args))
+        return
+
+    methods = [m.strip() for m in args.methods.split(",") if m.strip()]
+    bad = [m for m in methods if m not in METHODS]
+    if bad:
+        raise SystemExit(f"unknown methods {bad}; choose from {METHODS}")
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    results = []
+    t_all = time.perf_counter()
+    for m in methods:
+        if args.no_isolate:
+            results.append(run_method(m, args))
+            continue
+        # one process per method: CPU peak RSS is per process, and no method inherits another's caches
+        part = out / f"part-{m}.json"
+        cmd = [sys.executable, str(Path(__file__).resolve())] + sys.argv[1:] + ["--worker", m, "--worker-out", str(part)]
+        env = dict(os.environ, PYTHONPATH=str(ROOT / "scripts") + os.pathsep + os.environ.get("PYTHONPATH", ""))
+        subprocess.run(cmd, check=True, env=env)
+        results.append(json.loads(part.read_text()))
+    rows, target, src = summarise(results, args)
+    kind = "cuda" if cuda else "cpu"
+    cols = ["method", "budget_s", "train_s", "steps", "steps/s", "samples/s", "peak_mem_MB", "chamfer_mm", "psnr_dB",
+            "t_to_target_s", "speed-up_to_target"]
+    table = md_table(rows, cols)
+    curve_rows = [{"method": r["label"], "t_s": p["t"], "steps": p["steps"], "chamfer_mm": p["chamfer_mm"],
+                   "psnr_dB": p["psnr"]} for r in results for p in r["points"]]
+    bd = breakdown_md(results)
+    scene_name = Path(args.scene).name
+    ev = results[0]
+    cmd = "python scripts/speed_compare.py " + " ".join(sys.argv[1:])
+    mem_note = ("torch.cuda.max_memory_allocated during training" if cuda else
+                "process max RSS (training + evaluation" + (", one process per method)" if not args.no_isolate else
+                                                           ", cumulative over methods: --no-isolate)"))
+    text = (f"### Speed comparison on {kind.upper()}: {scene_name}\n\n"
+            f"Machine: {machine(args.device)}; commit {git_rev()}; {time.strftime('%Y-%m-%d')}. Command: `{cmd}`.\n"
+            f"Same wall-clock training budgets for each method (one run each, clock paused for evaluation). "
+            f"Chamfer GT->reconstruction in mm (mesh {args.mesh_res}^3); PSNR with the pattern on frame "
+            f"{ev['eval_frame']} ({'held out' if ev['eval_frame_held_out'] else 'a training frame'}; "
+            f"{'whole image' if args.psnr_pixels == 0 else f'{args.psnr_pixels} fixed random pixels'}); "
+            f"memory: {mem_note}; torch threads {torch.get_num_threads()}. Target Chamfer: "
+            f"{'none' if target is None else f'{target:.3g} mm ({src})'}; time to target is read at the "
+            f"evaluation points {eval_times(args.budgets, args.extra_points)} s.\n\n{table}\n"
+            f"Quality vs time (all evaluation points):\n\n{md_table(curve_rows, ['method', 't_s', 'steps', 'chamfer_mm', 'psnr_dB'])}\n"
+            f"{bd}")
+    print(text)
+    write_json(out / f"speed-compare-{kind}.json",
+               {"machine": machine(args.device), "git": git_rev(), "command": cmd, "scene": str(args.scene),
+                "budgets": args.budgets, "target_chamfer_mm": target, "target_source": src, "rows": rows,
+                "results": results, "wall_s": round(time.perf_counter() - t_all, 1)})
+    (out / f"speed-compare-{kind}.md").write_text(text)
+    plot(results, target, out / f"chamfer-vs-time-{kind}.png", f"{scene_name} ({kind})")
+    print(f"wrote {out / f'speed-compare-{kind}.json'}, .md and chamfer-vs-time-{kind}.png")
+    if not args.no_md:
+        update_section(ROOT / "docs" / "BENCHMARKS.md", f"speed-compare-{kind}", text)
+
+
+if __name__ == "__main__":
+    main()
