@@ -1,0 +1,54 @@
+"""scripts/speed_compare.py end to end on CPU: a tiny sphere, 1-2 s budgets, small models.
+
+No timing assertions: only that every method ran, was evaluated at every point and that the
+JSON, Markdown table and plot were written.
+"""
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(scope="module")
+def tiny_scene(tmp_path_factory):
+    from fastneus.synth import synthesize
+
+    out = tmp_path_factory.mktemp("scene") / "sphere3"
+    synthesize(out, shape="sphere", views=3, size=(32, 32), seed=0, device="cpu", progress=False)
+    return out
+
+
+def test_speed_compare_cpu_end_to_end(tiny_scene, tmp_path):
+    out = tmp_path / "sc"
+    cmd = [sys.executable, str(ROOT / "scripts" / "speed_compare.py"), str(tiny_scene), "--device", "cpu",
+           "--budgets", "1,2", "--out", str(out), "--no-md", "--no-isolate", "--threads", "1",
+           "--mesh-res", "24", "--points", "2000", "--psnr-pixels", "64", "--extra-points", "1",
+           "--breakdown", "--breakdown-steps", "3",
+           "--set", "occ_resolution=32", "target_samples=4096", "init_rays=256", "max_rays=1024",
+           "--baseline-set", "n_rays=64", "sdf_hidden=64", "color_hidden=64", "feature_dim=64",
+           "n_samples=16", "n_importance=16"]
+    env = dict(os.environ, PYTHONPATH=str(ROOT / "scripts") + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    r = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=300)
+    assert r.returncode == 0, r.stderr[-3000:]
+    data = json.loads((out / "speed-compare-cpu.json").read_text())
+    assert [x["method"] for x in data["results"]] == ["warp", "torch", "baseline"]
+    for res in data["results"]:
+        ts = [p["t_target"] for p in res["points"]]
+        assert ts == [0.0, 1.0, 2.0]
+        last = res["points"][-1]
+        assert last["steps"] >= 1 and last["t"] >= 2.0 and last["peak_mem_mb"] > 0
+        assert last["psnr"] > 0
+        if res["method"] != "baseline":
+            phases = {p["phase"] for p in res["breakdown"]["phases"]}
+            assert {"marching", "hash encoding", "MLPs", "rendering", "optimiser"} <= phases
+    assert len(data["rows"]) == 6 and data["target_chamfer_mm"] is not None
+    md = (out / "speed-compare-cpu.md").read_text()
+    assert "| method | budget_s |" in md and "ActiveNeuS baseline" in md
+    assert (out / "chamfer-vs-time-cpu.png").stat().st_size > 1000
