@@ -74,10 +74,10 @@ class Config:
     # --- optimisation ---
     lr: float = 1e-2
     lr_variance: float = 5e-3
-    lr_illum: float = 1e-2
+    lr_illum: float = 3e-2           # on log(i_r), log(i_b)
     adam_eps: float = 1e-15
     warmup_steps: int = 100            # linear lr warm-up
-    color_warmup_steps: int = 50       # geometry frozen while the colour net fits the image brightness:
+    color_warmup_steps: int = 100      # geometry frozen while the colour net fits the image brightness:
                                        # in dark scenes the init sphere is otherwise deleted, not darkened
     decay_to: float = 0.05             # final lr factor (cosine decay after warm-up)
     eikonal_weight: float = 0.1

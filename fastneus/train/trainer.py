@@ -97,7 +97,11 @@ class Trainer:
             f = (self.step + 1) / c.warmup_steps
         else:
             f = c.decay_to + (1 - c.decay_to) * 0.5 * (1 + math.cos(math.pi * self.progress()))
-        learn_illum = c.learn_illum and c.use_pattern and self.step >= c.illum_warmup_steps
+        # from a blind init (1, 1) the pattern term is several times too bright: waiting for the
+        # geometry would let it carve the surface away, so fit it with the colours from step 0
+        # (geometry frozen meanwhile), then keep learning
+        start = 0 if c.illum_init == "ones" else c.illum_warmup_steps
+        learn_illum = c.learn_illum and c.use_pattern and self.step >= start
         frozen = self.step < c.color_warmup_steps
         for g in self.opt.param_groups:
             if g["name"] == "illum":
