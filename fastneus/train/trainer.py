@@ -215,7 +215,7 @@ class Trainer:
                         i_r, i_b = (float(x.detach()) for x in self.illumination())
                         last = {"step": self.step, "time": round(self.elapsed, 3), "loss": float(rec["loss"]),
                                 "l1": float(rec["l1"]), "psnr": _psnr(float(rec["mse"])), "eik": float(rec["eik"]),
-                                "i_r": i_r, "i_b": i_b, "inv_s": float(self.field.inv_s()),
+                                "i_r": i_r, "i_b": i_b, "inv_s": float(self.field.inv_s().detach()),
                                 "rays": self.n_rays, "samples_per_ray": round(rec["spr"], 2),
                                 "it_s": steps_window / max(1e-9, now - t_window),
                                 "samples_s": samples_total / max(1e-9, now - t_window),
