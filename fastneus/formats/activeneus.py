@@ -73,6 +73,29 @@ def _rel(path: Path, root: Path) -> str:
 
 
 # --------------------------------------------------------------------------- reading
+def open_npz_folder(root: Path):
+    """Open ``root/cameras_sphere.npz`` and list ``image/`` and ``mask/`` (shared by the
+    ActiveNeuS and NeuS readers).
+
+    Returns:
+        (npz path, loaded npz, sorted image paths, sorted mask paths (may be empty)).
+    """
+    npz_path = root / NPZ
+    if not npz_path.is_file():
+        raise FastneusError("missing camera file", file=npz_path)
+    try:
+        npz = np.load(npz_path, allow_pickle=True)
+    except Exception as e:  # noqa: BLE001 - corrupt file: one line, not a trace
+        raise FastneusError(f"unreadable npz: {e}", file=npz_path) from None
+    images = _images(root / "image")
+    if not images:
+        raise FastneusError("no images found (expected image/NNN.png)", file=root / "image")
+    masks = _images(root / "mask")
+    if masks and len(masks) != len(images):
+        raise FastneusError(f"{len(masks)} masks for {len(images)} images", file=root / "mask")
+    return npz_path, npz, images, masks
+
+
 def read_activeneus(path: str | os.PathLike) -> Scene:
     """Read an ActiveNeuS scene folder into a validated in-memory :class:`Scene`.
 
@@ -92,20 +115,7 @@ def read_activeneus(path: str | os.PathLike) -> Scene:
         FastneusError: one line naming the file and key of the first problem.
     """
     root = Path(path)
-    npz_path = root / NPZ
-    if not npz_path.is_file():
-        raise FastneusError("missing camera file", file=npz_path)
-    try:
-        npz = np.load(npz_path, allow_pickle=True)
-    except Exception as e:  # noqa: BLE001 - corrupt file: one line, not a trace
-        raise FastneusError(f"unreadable npz: {e}", file=npz_path) from None
-
-    images = _images(root / "image")
-    if not images:
-        raise FastneusError("no images found (expected image/NNN.png)", file=root / "image")
-    masks = _images(root / "mask")
-    if masks and len(masks) != len(images):
-        raise FastneusError(f"{len(masks)} masks for {len(images)} images", file=root / "mask")
+    npz_path, npz, images, masks = open_npz_folder(root)
     n = len(images)
 
     # patterns: pattern/NNN_KK.png grouped by the part before the last "_"

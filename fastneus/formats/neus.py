@@ -16,7 +16,7 @@ import numpy as np
 
 from fastneus.data.scene import FORMAT, VERSION, Scene, image_size
 from fastneus.errors import FastneusError
-from fastneus.formats.activeneus import NPZ, _get, _group, _images, _rel
+from fastneus.formats.activeneus import NPZ, _get, _group, _images, _rel, open_npz_folder
 
 
 def decompose_projection(P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -52,19 +52,7 @@ def read_neus(path: str | os.PathLike) -> Scene:
         FastneusError: one line naming the file and key of the first problem.
     """
     root = Path(path)
-    npz_path = root / NPZ
-    if not npz_path.is_file():
-        raise FastneusError("missing camera file", file=npz_path)
-    try:
-        npz = np.load(npz_path, allow_pickle=True)
-    except Exception as e:  # noqa: BLE001
-        raise FastneusError(f"unreadable npz: {e}", file=npz_path) from None
-    images = _images(root / "image")
-    if not images:
-        raise FastneusError("no images found (expected image/NNN.png)", file=root / "image")
-    masks = _images(root / "mask")
-    if masks and len(masks) != len(images):
-        raise FastneusError(f"{len(masks)} masks for {len(images)} images", file=root / "mask")
+    npz_path, npz, images, masks = open_npz_folder(root)
 
     Ks, poses = [], []
     S = None
