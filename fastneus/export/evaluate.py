@@ -198,9 +198,10 @@ def save_renders(renders: dict[int, dict], folder: Path) -> dict[int, dict[str, 
         if valid.any():
             lo, hi = np.percentile(d[valid], [1, 99])
             dv = np.where(valid, 1 - (d - lo) / max(hi - lo, 1e-6) * 0.8, 0)
-        n = r["normal"]
+        # normals only where the surface is solid: faint fog would show as a grey halo
+        n = r["normal"] / np.maximum(np.linalg.norm(r["normal"], axis=-1, keepdims=True), 1e-6)
         imgs = {"photo": r["photo"], "color": to_u8(r["color"]), "texture": to_u8(r["texture"]),
-                "depth": to_u8(np.repeat(dv[..., None], 3, -1)), "normal": to_u8((n + 1) * 0.5 * (np.abs(n).sum(-1, keepdims=True) > 0))}
+                "depth": to_u8(np.repeat(dv[..., None], 3, -1)), "normal": to_u8((n + 1) * 0.5 * valid[..., None])}
         paths[i] = {}
         for k, img in imgs.items():
             p = folder / f"{i:03d}_{k}.png"
