@@ -4,7 +4,9 @@ Warp is imported only inside ``fastneus.kernels`` (this folder).
 """
 from __future__ import annotations
 
+import contextlib
 import os
+import sys
 import threading
 
 import torch
@@ -12,6 +14,20 @@ import warp as wp
 
 _lock = threading.Lock()
 _initialised = False
+
+
+@contextlib.contextmanager
+def _quiet_stderr():
+    """Silence the process's stderr (file descriptor 2, native writes included)."""
+    sys.stderr.flush()
+    saved = os.dup(2)
+    try:
+        with open(os.devnull, "w") as null:
+            os.dup2(null.fileno(), 2)
+        yield
+    finally:
+        os.dup2(saved, 2)
+        os.close(saved)
 
 
 def init() -> None:
@@ -28,7 +44,13 @@ def init() -> None:
             wp.config.verbose = False
             if os.environ.get("FASTNEUS_WARP_DEBUG"):
                 wp.config.mode = "debug"
-            wp.init()
+            if torch.cuda.is_available():
+                wp.init()
+            else:
+                # Warp's native CUDA probe prints "Could not find or load the NVIDIA CUDA driver"
+                # on every CPU-only run; that is expected here, so keep it out of users' terminals.
+                with _quiet_stderr():
+                    wp.init()
             _initialised = True
 
 
