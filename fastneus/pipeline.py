@@ -37,10 +37,12 @@ def finish_run(trainer, console=None, eval_frames: list[int] | None = None, mesh
     t = time.perf_counter()
     renders = render_frames(trainer, frames)
     paths = save_renders(renders, run / "renders")
+    from fastneus.io import atomic_write_image
+
     for i in frames:
-        if scene.gt_clean(i) is not None:
-            from fastneus.io import atomic_write_image
-            atomic_write_image(run / "renders" / f"{i:03d}_clean.png", scene.gt_clean(i))
+        clean = scene.gt_clean(i)  # read once: it is a full-size PNG
+        if clean is not None:
+            atomic_write_image(run / "renders" / f"{i:03d}_clean.png", clean)
             paths[i]["clean"] = f"renders/{i:03d}_clean.png"
     say(f"renders of frames {frames} -> {run / 'renders'} ({time.perf_counter() - t:.1f}s)")
     metrics: dict = {"steps": trainer.step, "train_seconds": round(trainer.elapsed, 2),

@@ -135,3 +135,20 @@ def test_bad_input_is_one_line(argv, needle, tiny_scene, capsys):
     assert main(argv) == 2
     err = capsys.readouterr().err.strip()
     assert needle in err and "Traceback" not in err and len(err.splitlines()) == 1, err
+
+
+def test_nan_guard_skips_step_and_keeps_parameters():
+    from fastneus.train.guard import finite_step
+
+    p = torch.nn.Parameter(torch.randn(4))
+    before = p.detach().clone()
+    opt = torch.optim.Adam([p], lr=0.1)
+    p.grad = torch.randn(4)
+    p.grad[2] = float("nan")
+    assert not finite_step(opt, torch.tensor(0.5))
+    assert torch.equal(p.detach(), before) and p.grad is None
+    p.grad = torch.randn(4)
+    assert not finite_step(opt, torch.tensor(float("inf")))
+    p.grad = torch.randn(4)
+    assert finite_step(opt, torch.tensor(0.5))
+    assert not torch.equal(p.detach(), before)

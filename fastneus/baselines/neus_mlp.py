@@ -34,6 +34,7 @@ import torch.nn as nn
 from fastneus.errors import FastneusError
 from fastneus.kernels.render import render_pattern_torch
 from fastneus.sampling import RayBank, build_projection
+from fastneus.train.guard import finite_step
 
 
 @dataclass
@@ -428,13 +429,11 @@ class BaselineTrainer:
         loss = loss_rgb + c.eikonal_weight * loss_eik
         self.opt.zero_grad(set_to_none=True)
         loss.backward()
-        if not bool(torch.isfinite(loss)):
-            self.skipped += 1
-            self.step += 1
-            self.opt.zero_grad(set_to_none=True)
-            return None
-        self.opt.step()
+        stepped = finite_step(self.opt, loss)  # NaN/Inf guard, shared with fastneus
         self.step += 1
+        if not stepped:
+            self.skipped += 1
+            return None
         return {"loss": loss.detach(), "l1": loss_rgb.detach(), "mse": (err ** 2).mean().detach(),
                 "eik": loss_eik.detach(), "spr": out["n_samples"] / c.n_rays, "samples": out["n_samples"]}
 

@@ -18,6 +18,7 @@ from fastneus.field.model import SDFField
 from fastneus.field.renderer import render_rays
 from fastneus.io import atomic_write
 from fastneus.kernels.occupancy import OccupancyGrid
+from fastneus.train.guard import finite_step
 from fastneus.sampling import RayBank, build_projection
 
 CKPT_NAME = "checkpoint.pt"
@@ -169,19 +170,11 @@ class Trainer:
             loss = loss + c.curvature_weight * out["curv"].abs().mean()
         self.opt.zero_grad(set_to_none=True)
         loss.backward()
-        # NaN/Inf guard: one flag over the loss and every gradient, one host read
-        flag = torch.isfinite(loss)
-        for g in self.opt.param_groups:
-            for p in g["params"]:
-                if p.grad is not None:
-                    flag = flag & torch.isfinite(p.grad).all()
-        if not bool(flag):
-            self.skipped += 1
-            self.step += 1
-            self.opt.zero_grad(set_to_none=True)
-            return None
-        self.opt.step()
+        stepped = finite_step(self.opt, loss)  # NaN/Inf guard
         self.step += 1
+        if not stepped:
+            self.skipped += 1
+            return None
         return {"loss": loss.detach(), "l1": loss_rgb.detach(), "mse": (err ** 2).mean().detach(),
                 "eik": loss_eik.detach(), "spr": s / batch["origins"].shape[0], "samples": s}
 
