@@ -33,3 +33,17 @@ def get_op(name: str, backend: str = "warp"):
         raise ValueError(f"unknown kernel backend {backend!r}; use one of {BACKENDS}")
     mod = importlib.import_module(f"{__name__}.{_OPS[name]}")
     return getattr(mod, name if backend == "warp" else f"{name}_torch")
+
+
+def prepare_kernels(device, say=None, backend: str = "warp", ops=("hash_encode", "march_rays", "render_pattern")) -> float:
+    """Load every Warp module a training step uses on ``device`` before timing starts.
+
+    On a machine's first run (or after a kernel change) this compiles them and, when ``say``
+    is given, prints that it does. The torch backend needs nothing. Returns seconds spent.
+    """
+    if backend != "warp":
+        return 0.0
+    from ._warp import load_modules
+
+    mods = list(dict.fromkeys(importlib.import_module(f"{__name__}.{_OPS[o]}") for o in ops))
+    return load_modules(mods, str(device), say=say)

@@ -8,6 +8,7 @@ import contextlib
 import os
 import sys
 import threading
+import time
 
 import torch
 import warp as wp
@@ -94,3 +95,42 @@ def launch(kernel, dim, inputs, ref: torch.Tensor, outputs=None, adj_inputs=None
         return
     wp.launch(kernel, dim=dim, inputs=inputs, outputs=outputs or [], adj_inputs=adj_inputs or [],
               adj_outputs=adj_outputs or [], adjoint=adjoint, device=device_of(ref), stream=stream_of(ref))
+
+
+def _cached(module, device: str) -> bool | None:
+    """True if ``module``'s compiled binary for ``device`` is in Warp's kernel cache (None = unknown)."""
+    try:
+        from warp._src.context import get_module, runtime
+
+        m = get_module(module.__name__)
+        dev = runtime.get_device(device)
+        folder = os.path.join(wp.config.kernel_cache_dir, m.get_module_identifier())
+        return os.path.isfile(os.path.join(folder, m._get_compile_output_name(dev)))
+    except Exception:  # noqa: BLE001 - private API of one Warp version; only used for a message
+        return None
+
+
+def load_modules(modules, device: str, say=None) -> float:
+    """Load (compile on a machine's first run) the Warp modules ``modules`` on ``device``.
+
+    Args:
+        modules: Python modules holding Warp kernels.
+        device: "cpu" or "cuda[:N]".
+        say: optional print function; told when kernels must be compiled first.
+    Returns:
+        Seconds spent.
+    """
+    init()
+    dev = "cpu" if str(device) == "cpu" else (str(device) if ":" in str(device) else
+                                             f"cuda:{torch.cuda.current_device()}")
+    t = time.perf_counter()
+    missing = [m.__name__.rsplit(".", 1)[-1] for m in modules if _cached(m, dev) is False]
+    if missing and say is not None:
+        say(f"compiling Warp kernels for {dev} ({', '.join(missing)}): once per machine and kernel version, "
+            f"about 10-30 s; cached in {wp.config.kernel_cache_dir}")
+    for m in modules:
+        wp.load_module(m, device=dev)
+    dt = time.perf_counter() - t
+    if missing and say is not None:
+        say(f"kernels compiled in {dt:.1f} s")
+    return dt

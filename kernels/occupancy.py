@@ -438,7 +438,10 @@ class OccupancyGrid:
     Attributes:
         resolution: cells per axis (res).
         values: [res^3] float32 EMA of the alpha estimate (cell x + y*res + z*res^2).
-        bits: [res^3] uint8, 1 where ``values > threshold`` (or everywhere during warm-up).
+        bits: [res^3] uint8, 1 where ``values > threshold`` (or everywhere during warm-up),
+            and only where ``allowed`` (when set).
+        allowed: None or [res^3] bool: cells that may ever be occupied (e.g. the volume the
+            training cameras see); derived from the scene, so not part of ``state_dict``.
     """
 
     def __init__(self, resolution: int = 128, device: str | torch.device = "cpu"):
@@ -447,7 +450,17 @@ class OccupancyGrid:
         n = self.resolution ** 3
         self.values = torch.zeros(n, dtype=torch.float32, device=self.device)
         self.bits = torch.ones(n, dtype=torch.uint8, device=self.device)  # all occupied until first update
+        self.allowed: torch.Tensor | None = None
         self._ijk = None
+
+    def set_allowed(self, allowed: torch.Tensor | None) -> None:
+        """Restrict occupancy to ``allowed`` ([res^3] bool) from now on (None = everywhere)."""
+        if allowed is not None:
+            allowed = allowed.reshape(-1).to(device=self.device, dtype=torch.bool)
+            if allowed.numel() != self.num_cells:
+                raise ValueError(f"allowed has {allowed.numel()} cells, the grid {self.num_cells}")
+            self.bits &= allowed.to(torch.uint8)
+        self.allowed = allowed
 
     @property
     def num_cells(self) -> int:
@@ -502,6 +515,8 @@ class OccupancyGrid:
         """
         if warmup:
             self.bits.fill_(1)
+            if self.allowed is not None:
+                self.bits &= self.allowed.to(torch.uint8)
             return
         n = self.num_cells
         index = None
@@ -521,7 +536,10 @@ class OccupancyGrid:
             torch.maximum(self.values, alpha, out=self.values)
         else:
             self.values[index] = torch.maximum(self.values[index], alpha)
-        self.bits.copy_(self.values > threshold)
+        occ = self.values > threshold
+        if self.allowed is not None:
+            occ &= self.allowed
+        self.bits.copy_(occ)
 
     def occupied_fraction(self) -> float:
         """Fraction of occupied cells (host sync; for logging only)."""
@@ -546,11 +564,15 @@ class OccupancyGrid:
             raise ValueError(f"occupancy grid resolution {state['resolution']} != {self.resolution}")
         self.values.copy_(state["values"])
         self.bits.copy_(state["bits"])
+        if self.allowed is not None:
+            self.bits &= self.allowed.to(torch.uint8)
 
     def to(self, device) -> "OccupancyGrid":
         self.device = torch.device(device)
         self.values = self.values.to(self.device)
         self.bits = self.bits.to(self.device)
+        if self.allowed is not None:
+            self.allowed = self.allowed.to(self.device)
         self._ijk = None
         return self
 
