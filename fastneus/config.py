@@ -25,8 +25,9 @@ class Config:
     preset: str = "fewview"            # name of the preset this config came from (informational)
     backend: str = "warp"              # kernel backend: warp | torch (the twins; for comparison)
     seed: int = 0
-    steps: int = 3000                  # optimisation steps
-    time_budget: float = 0.0           # seconds of training; stops early when > 0
+    steps: int = 3000                  # optimisation steps (the run's length when time_budget is 0)
+    time_budget: float = 0.0           # seconds of training; when > 0 it is the run's length (steps ignored)
+                                       # and every schedule below is a fraction of it
     frames: list[int] | None = None    # frames to train on (None = all)
     log_every: int = 50
     save_every: int = 1000             # checkpoint period (steps); the last step always saves
@@ -40,13 +41,21 @@ class Config:
     max_samples_per_ray: int = 1024
     bound: str = "sphere"              # sphere | box
     background: float = 0.0            # background colour behind the object (synthetic data: black)
+    min_views: int = 2                 # space seen by fewer distinct viewpoints is never occupied (no
+                                       # floaters where nothing can be triangulated); 0 = off
+    bg_prior: str = "auto"             # pixels equal to `background` are free space when masks are not
+                                       # used: auto (on when >= 5% of pixels are) | on | off
+    bg_weight: float = 0.1             # weight of that prior (BCE of opacity toward 0 on those pixels)
+    bg_start_frac: float = 0.2         # the prior ramps in from this fraction of the run to twice it:
+                                       # from the start it erodes the init sphere before thin parts form
+    bg_tolerance: float = 0.008        # per-channel distance to `background` still counted as it (~2/255)
     bright_fraction: float = 0.5       # share of rays drawn in proportion to pixel brightness: sparse
                                        # laser lines in dark scenes are otherwise almost never sampled
 
     # --- occupancy grid ---
     occ_resolution: int = 128
     occ_update_every: int = 16
-    occ_warmup_steps: int = 256        # every cell occupied until then
+    occ_warmup_frac: float = 0.08      # every cell occupied for this fraction of the run
     occ_threshold: float = 0.01
 
     # --- hash grid ---
@@ -55,8 +64,8 @@ class Config:
     log2_table: int = 19
     base_res: int = 16
     finest_res: int = 2048
-    c2f_start_levels: int = 4          # coarse-to-fine: active levels at step 0 (0 = all)
-    c2f_steps_per_level: int = 100     # one more level every this many steps
+    c2f_start_levels: int = 4          # coarse-to-fine: active levels at the start (0 = all)
+    c2f_frac: float = 0.4              # ... rising linearly to all levels at this fraction of the run
 
     # --- networks ---
     sdf_hidden: int = 64
@@ -68,7 +77,8 @@ class Config:
     init_radius: float = 0.5           # sphere initialisation of the SDF (normalised units)
     variance_init: float = 0.3         # inv_s = exp(10 * v)
     inv_s_floor_end: float = 1000.0    # inv_s >= a floor rising log-linearly from inv_s_floor_start
-    inv_s_floor_start: float = 20.0    # to this value over the first 60% of training (0 = learned only)
+    inv_s_floor_start: float = 20.0    # to this value over the first inv_s_floor_frac of the run (end 0 = learned only)
+    inv_s_floor_frac: float = 0.6
     normal_eps_min: float = 1e-3       # lower bound for the finite-difference step (normalised)
 
     # --- optimisation ---
@@ -76,19 +86,20 @@ class Config:
     lr_variance: float = 5e-3
     lr_illum: float = 3e-2           # on log(i_r), log(i_b)
     adam_eps: float = 1e-15
-    warmup_steps: int = 100            # linear lr warm-up
-    color_warmup_steps: int = 100      # geometry frozen while the colour net fits the image brightness:
+    warmup_frac: float = 0.03          # linear lr warm-up (fraction of the run)
+    color_warmup_frac: float = 0.03    # geometry frozen while the colour net fits the image brightness:
                                        # in dark scenes the init sphere is otherwise deleted, not darkened
     decay_to: float = 0.05             # final lr factor (cosine decay after warm-up)
     eikonal_weight: float = 0.1
-    mask_weight: float = 0.0           # BCE on opacity vs mask (only when masks exist)
+    masks: str = "auto"                # auto (on when every training frame has a mask) | on | off
+    mask_weight: float = 0.1           # BCE on opacity vs mask, when masks are used
     curvature_weight: float = 0.0      # smoothness prior (oneshot): |sdf(x+e) + sdf(x-e) - 2 sdf(x)|
-    cos_anneal_steps: int = 500
+    cos_anneal_frac: float = 0.15      # NeuS cos-anneal ratio 0 -> 1 over this fraction of the run
 
     # --- projection / illumination ---
     use_pattern: bool = True           # False = passive NeuS (no projected pattern in the model)
     learn_illum: bool = True
-    illum_warmup_steps: int = 500      # i_r, i_b frozen before this step
+    illum_warmup_frac: float = 0.15    # i_r, i_b frozen for this fraction of the run (illum_init=scene)
     illum_init: str = "scene"          # scene (values from scene.json) | ones (i_r = i_b = 1)
 
     # --- export ---
@@ -103,11 +114,21 @@ _CHOICES = {
     "backend": ("warp", "torch"),
     "bound": ("sphere", "box"),
     "illum_init": ("scene", "ones"),
+    "masks": ("auto", "on", "off"),
+    "bg_prior": ("auto", "on", "off"),
 }
+# fractions of the run: each must lie in [0, 1]
+_FRACTIONS = ("occ_warmup_frac", "c2f_frac", "inv_s_floor_frac", "warmup_frac", "color_warmup_frac",
+              "cos_anneal_frac", "illum_warmup_frac", "bg_start_frac")
+# keys of earlier versions (schedules in steps): converted to fractions of the run when a saved
+# config is read back (a run folder from an older fastneus must still open)
+_LEGACY_STEPS = {"occ_warmup_steps": "occ_warmup_frac", "warmup_steps": "warmup_frac",
+                 "color_warmup_steps": "color_warmup_frac", "cos_anneal_steps": "cos_anneal_frac",
+                 "illum_warmup_steps": "illum_warmup_frac"}
 _POSITIVE = {"steps", "target_samples", "init_rays", "min_rays", "max_rays", "march_step",
              "max_samples_per_ray", "occ_resolution", "occ_update_every", "levels", "features",
              "log2_table", "base_res", "finest_res", "sdf_hidden", "geo_features", "color_hidden",
-             "lr", "adam_eps", "mesh_resolution", "log_every", "save_every", "c2f_steps_per_level"}
+             "lr", "adam_eps", "mesh_resolution", "log_every", "save_every"}
 
 
 def preset_names() -> list[str]:
@@ -185,6 +206,12 @@ def validate(cfg: Config, source: str = "config") -> None:
             raise FastneusError(f"must be > 0, got {getattr(cfg, k)!r}", file=source, field=k)
     if cfg.min_rays > cfg.max_rays:
         raise FastneusError("min_rays must not exceed max_rays", file=source, field="min_rays")
+    if cfg.min_views < 0:
+        raise FastneusError(f"must be >= 0, got {cfg.min_views}", file=source, field="min_views")
+    for k in _FRACTIONS:
+        if not 0.0 <= getattr(cfg, k) <= 1.0:
+            raise FastneusError(f"a fraction of the run must be in [0, 1], got {getattr(cfg, k)!r}",
+                                file=source, field=k)
     if not (0 < cfg.decay_to <= 1):
         raise FastneusError("must be in (0, 1]", file=source, field="decay_to")
 
@@ -232,5 +259,18 @@ def save_config(cfg: Config, path: Path) -> None:
 
 
 def config_from_dict(d: dict[str, Any], source: str) -> Config:
-    """Rebuild a Config from a saved dict (a run's config.yaml or a checkpoint)."""
+    """Rebuild a Config from a saved dict (a run's config.yaml or a checkpoint).
+
+    Step-based schedule keys of earlier versions become fractions of that run's ``steps``.
+    """
+    d = dict(d)
+    steps = max(1, int(d.get("steps", Config.steps) or 1))
+    for old, new in _LEGACY_STEPS.items():
+        if old in d:
+            v = d.pop(old)
+            d.setdefault(new, min(1.0, max(0.0, float(v) / steps)))
+    if "c2f_steps_per_level" in d:
+        per = max(1, int(d.pop("c2f_steps_per_level")))
+        levels, start = int(d.get("levels", Config.levels)), int(d.get("c2f_start_levels", Config.c2f_start_levels))
+        d.setdefault("c2f_frac", min(1.0, max(0, levels - start) * per / steps))
     return apply(Config(), d, source)

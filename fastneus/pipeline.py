@@ -29,7 +29,7 @@ def finish_run(trainer, console=None, eval_frames: list[int] | None = None, mesh
     run, scene, cfg = trainer.out, trainer.scene, trainer.cfg
     t = time.perf_counter()
     res = mesh_resolution or cfg.mesh_resolution
-    mesh = extract_mesh(trainer.field, scene, res, trainer.device, bound=cfg.bound)
+    mesh = extract_mesh(trainer.field, scene, res, trainer.device, bound=cfg.bound, allowed=trainer.seen)
     save_mesh(mesh, run / "mesh.ply")
     say(f"mesh: {len(mesh.vertices)} vertices, {len(mesh.faces)} faces -> {run / 'mesh.ply'} "
         f"({time.perf_counter() - t:.1f}s)")
@@ -46,7 +46,8 @@ def finish_run(trainer, console=None, eval_frames: list[int] | None = None, mesh
             paths[i]["clean"] = f"renders/{i:03d}_clean.png"
     say(f"renders of frames {frames} -> {run / 'renders'} ({time.perf_counter() - t:.1f}s)")
     metrics: dict = {"steps": trainer.step, "train_seconds": round(trainer.elapsed, 2),
-                     "train_frames": len(trainer.frames), "skipped_steps": trainer.skipped}
+                     "train_frames": len(trainer.frames), "skipped_steps": trainer.skipped,
+                     "masks_used": bool(trainer.masks_used), "bg_prior_used": bool(trainer.bg_used)}
     metrics.update(illumination_metrics(trainer))
     metrics.update(geometry_metrics(mesh, scene, trainer.frames))
     metrics.update(image_metrics(scene, renders))
@@ -72,7 +73,13 @@ def train_scene(scene, cfg: Config, out: Path, device: str, console=None, resume
         if not (out / CKPT_NAME).is_file():
             raise FastneusError("--resume given but the run folder has no checkpoint", file=str(out / CKPT_NAME))
         trainer.load_state(load_checkpoint(out, map_location=device))
-    atomic_write_json(out / "run.json", {"scene": str(scene.root), "device": str(device), "preset": cfg.preset})
+    if console is not None:
+        console.print(trainer.masks_note)
+        console.print(trainer.bg_note)
+        length = f"time budget {cfg.time_budget:g} s" if cfg.time_budget > 0 else f"{cfg.steps} steps"
+        console.print(f"run length: {length}; every schedule is a fraction of it")
+    atomic_write_json(out / "run.json", {"scene": str(scene.root), "device": str(device), "preset": cfg.preset,
+                                         "masks": trainer.masks_note, "background_prior": trainer.bg_note})
     last = trainer.fit()
     if console is not None and last:
         console.print(f"trained {trainer.step} steps in {trainer.elapsed:.1f}s: loss {last['loss']:.4f}, "

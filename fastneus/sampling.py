@@ -77,9 +77,13 @@ class RayBank:
         frames: frame indices to use (into ``scene.frames``).
         device: where the store lives (the GPU when training there).
         load_masks: keep masks (uint8) for the mask loss / metrics.
+        brightness_cdf: keep a brightness-proportional pixel distribution for ``bright_fraction``.
+        background: when given, flag pixels whose every channel is within ``bg_tolerance`` of this
+            value in [0, 1] (``self.bg``, [sum HW] bool; ``self.bg_fraction`` their share).
     """
 
-    def __init__(self, scene, frames: list[int], device, load_masks: bool = False, brightness_cdf: bool = False):
+    def __init__(self, scene, frames: list[int], device, load_masks: bool = False, brightness_cdf: bool = False,
+                 background: float | None = None, bg_tolerance: float = 2.0 / 255):
         self.frames = list(frames)
         self.device = torch.device(device)
         sizes, kinv, rot, org, chunks, masks = [], [], [], [], [], []
@@ -106,6 +110,11 @@ class RayBank:
         self.rot = torch.tensor(np.stack(rot), **f32)                        # [F, 3, 3]
         self.origin = torch.tensor(np.stack(org), **f32)                     # [F, 3]
         self.n_pixels = int((wh[:, 0] * wh[:, 1]).sum())
+        self.bg, self.bg_fraction = None, 0.0
+        if background is not None:
+            diff = (self.rgb.to(torch.int16) - int(round(255 * background))).abs().amax(dim=1)
+            self.bg = diff <= int(round(255 * bg_tolerance))                   # [sum HW] bool
+            self.bg_fraction = float(self.bg.float().mean())
         self.cdf = None
         if brightness_cdf:
             # brightness-proportional pixel distribution (float64: millions of pixels)
@@ -133,7 +142,8 @@ class RayBank:
 
         Returns:
             dict: fidx [n] int32, origins [n, 3], dirs [n, 3], rgb [n, 3] float in [0, 1],
-            mask [n] float (if masks), pix [n] int64 flat pixel index.
+            mask [n] float (if masks), bg [n] float 1/0 (if ``background`` was given),
+            pix [n] int64 flat pixel index.
         """
         g = generator
         flat = torch.randint(0, self.n_pixels, (n,), device=self.device, generator=g)
@@ -150,6 +160,8 @@ class RayBank:
                "rgb": self.rgb[flat].float() / 255.0, "pix": flat}
         if self.mask is not None:
             out["mask"] = self.mask[flat].float() / 255.0
+        if self.bg is not None:
+            out["bg"] = self.bg[flat].float()
         return out
 
     def image_rays(self, a: int):

@@ -16,8 +16,8 @@ mask IoU (opacity > 0.5 vs mask > 0.5). Two illumination settings:
 
 Background: the sample's photos are exactly black outside the mask (checked at start and
 reported), so ``background=0`` (our default) matches them. The official run also uses the
-masks (BCE weight 1.0); fastneus's default ``mask_weight`` is 0 — pass ``mask_weight=1``
-to use them. Writes ``results.json``, ``results.md``, ``grid.png`` + ``index.html``
+masks (BCE weight 1.0); fastneus uses them by default (``masks=auto``, ``mask_weight`` 0.1).
+Writes ``results.json``, ``results.md``, ``grid.png`` + ``index.html``
 (held-out photos next to renders) into ``--out`` and updates the section
 ``activeneus-sample-<device>`` of docs/BENCHMARKS.md.
 """

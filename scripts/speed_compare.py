@@ -223,7 +223,7 @@ def phased_step(tr, pt: PhaseTimer) -> int:
     from fastneus.kernels import get_op
 
     c = tr.cfg
-    tr.field.set_progress(tr.step, tr.progress())
+    tr.field.set_progress(tr.progress())
     tr.grid.update(tr.field.sdf, float(tr.field.inv_s().detach()), c.march_step, threshold=c.occ_threshold,
                    margin=math.sqrt(3) / tr.grid.resolution, backend=c.backend)
     pt.lap("occupancy update")

@@ -14,8 +14,8 @@ from fastneus.config import load_config
 STEPS = 150
 # tiny but real: a sphere in 4 views of 32x32, cpu-quick-sized model
 TINY = [f"steps={STEPS}", "log_every=10", "save_every=50", "mesh_resolution=48", "occ_resolution=32",
-        "target_samples=8192", "init_rays=256", "max_rays=1024", "illum_warmup_steps=50",
-        "render_frames=[0]", "c2f_steps_per_level=20"]
+        "target_samples=8192", "init_rays=256", "max_rays=1024", "illum_warmup_frac=0.25",
+        "render_frames=[0]", "c2f_frac=0.5"]
 
 
 @pytest.fixture(scope="module")

@@ -33,7 +33,7 @@ def _mesh(args) -> int:
 
     device = resolve_device(args.device)
     scene, tr = open_run(args.run, device, args.scene)
-    mesh = extract_mesh(tr.field, scene, args.resolution, tr.device, bound=tr.cfg.bound)
+    mesh = extract_mesh(tr.field, scene, args.resolution, tr.device, bound=tr.cfg.bound, allowed=tr.seen)
     out = Path(args.out) if args.out else Path(args.run) / "mesh.ply"
     save_mesh(mesh, out)
     print(f"{out}: {len(mesh.vertices)} vertices, {len(mesh.faces)} faces (world units, {scene.units})")

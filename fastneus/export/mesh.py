@@ -12,11 +12,14 @@ from fastneus.io import atomic_write
 
 
 @torch.no_grad()
-def sdf_grid(field, resolution: int, device, chunk: int = 2 ** 18, bound: str = "sphere") -> np.ndarray:
+def sdf_grid(field, resolution: int, device, chunk: int = 2 ** 18, bound: str = "sphere",
+             allowed: torch.Tensor | None = None) -> np.ndarray:
     """Evaluate the SDF on a regular grid over [-1, 1]^3.
 
     Outside the unit sphere (``bound='sphere'``) the field was never trained, so it is
     clamped to at least the distance to that sphere: no spurious surfaces in the corners.
+    Likewise outside ``allowed`` ([R^3] bool cells of an occupancy-grid layout over [-1, 1]^3,
+    e.g. the volume the training cameras see) the SDF is clamped to at least one cell size.
 
     Returns:
         [N, N, N] float32, indexed [x, y, z].
@@ -25,6 +28,9 @@ def sdf_grid(field, resolution: int, device, chunk: int = 2 ** 18, bound: str = 
     out = np.empty((resolution,) * 3, dtype=np.float32)
     yz = torch.stack(torch.meshgrid(lin, lin, indexing="ij"), -1).reshape(-1, 2)   # [N^2, 2]
     per = max(1, chunk // yz.shape[0])
+    if allowed is not None:
+        ar = round(allowed.numel() ** (1 / 3))
+        allowed = allowed.reshape(-1).to(device)
     for a in range(0, resolution, per):
         xs = lin[a:a + per]
         pts = torch.cat([xs[:, None, None].expand(-1, yz.shape[0], 1), yz[None].expand(xs.shape[0], -1, -1)], -1)
@@ -32,6 +38,10 @@ def sdf_grid(field, resolution: int, device, chunk: int = 2 ** 18, bound: str = 
         f = field.sdf(pts)
         if bound == "sphere":
             f = torch.maximum(f, pts.norm(dim=-1) - 1.0)
+        if allowed is not None:
+            c = ((pts + 1.0) * (0.5 * ar)).long().clamp_(0, ar - 1)
+            ok = allowed[c[:, 0] + ar * (c[:, 1] + ar * c[:, 2])]
+            f = torch.where(ok, f, f.clamp_min(2.0 / ar))
         out[a:a + per] = f.reshape(xs.shape[0], resolution, resolution).float().cpu().numpy()
     return out
 
@@ -63,9 +73,10 @@ def mesh_from_grid(sdf: np.ndarray, center, radius: float, keep_fraction: float 
     return mesh
 
 
-def extract_mesh(field, scene, resolution: int, device, bound: str = "sphere") -> trimesh.Trimesh:
-    """The field's zero level set as a mesh in world units."""
-    grid = sdf_grid(field, resolution, device, bound=bound)
+def extract_mesh(field, scene, resolution: int, device, bound: str = "sphere",
+                 allowed: torch.Tensor | None = None) -> trimesh.Trimesh:
+    """The field's zero level set as a mesh in world units (only inside ``allowed`` cells, if given)."""
+    grid = sdf_grid(field, resolution, device, bound=bound, allowed=allowed)
     return mesh_from_grid(grid, scene.bounds.center, float(scene.bounds.radius))
 
 

@@ -79,21 +79,24 @@ class SDFField(nn.Module):
             nn.init.normal_(lin.weight, 0.0, math.sqrt(2) / math.sqrt(d_out))
 
     # ------------------------------------------------------------------ geometry
-    def set_progress(self, step: int, progress: float = 0.0) -> None:
-        """Coarse-to-fine levels and the sharpness floor for training ``step`` / ``progress`` in [0, 1].
+    def set_progress(self, progress: float) -> None:
+        """Coarse-to-fine levels and the sharpness floor at ``progress`` in [0, 1] of the run.
 
-        One more hash level every ``c2f_steps_per_level`` steps; inv_s is kept above a floor rising
-        log-linearly from ``inv_s_floor_start`` to ``inv_s_floor_end`` over the first 60% of training:
-        the learned NeuS variance alone sharpens too slowly for a budget of a few thousand steps.
+        Active levels rise linearly from ``c2f_start_levels`` to all levels at ``c2f_frac`` of the
+        run; inv_s is kept above a floor rising log-linearly from ``inv_s_floor_start`` to
+        ``inv_s_floor_end`` over the first ``inv_s_floor_frac``: the learned NeuS variance alone
+        sharpens too slowly for a budget of a few thousand steps. Both are fractions of the run,
+        so a 5-s and a 10-min run pass through the same stages.
         """
         c = self.cfg
         if c.inv_s_floor_end > 0:
-            f = min(1.0, progress / 0.6)
+            f = min(1.0, progress / c.inv_s_floor_frac) if c.inv_s_floor_frac > 0 else 1.0
             self.inv_s_floor = math.exp(math.log(c.inv_s_floor_start) * (1 - f) + math.log(c.inv_s_floor_end) * f)
-        if c.c2f_start_levels <= 0:
+        if c.c2f_start_levels <= 0 or c.c2f_frac <= 0 or c.c2f_start_levels >= c.levels:
             self.active_levels = c.levels
         else:
-            self.active_levels = min(c.levels, c.c2f_start_levels + step // c.c2f_steps_per_level)
+            f = min(1.0, progress / c.c2f_frac)
+            self.active_levels = min(c.levels, c.c2f_start_levels + int(math.floor(f * (c.levels - c.c2f_start_levels) + 1e-9)))
 
     def normal_eps(self) -> float:
         """Finite-difference step tied to the finest active level (normalised units)."""

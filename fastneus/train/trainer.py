@@ -24,6 +24,43 @@ from fastneus.sampling import RayBank, build_projection
 CKPT_NAME = "checkpoint.pt"
 
 
+def resolve_masks(scene, frames: list[int], cfg: Config) -> tuple[bool, str]:
+    """Decide whether the mask loss is used: ``masks=auto`` -> on when every training frame has a mask.
+
+    Returns:
+        (used, note): the decision and a one-line explanation for the run summary.
+    """
+    have = sum(scene.frames[i].mask is not None for i in frames)
+    n = len(frames)
+    if cfg.masks == "on" and have < n:
+        raise FastneusError(f"masks=on but only {have} of {n} training frames have a mask", field="masks")
+    used = cfg.mask_weight > 0 and (cfg.masks == "on" or (cfg.masks == "auto" and have == n))
+    why = {"on": "asked for", "off": "turned off", "auto": f"{have}/{n} training frames have masks"}[cfg.masks]
+    if cfg.masks != "off" and cfg.mask_weight <= 0:
+        why += "; mask_weight is 0"
+    return used, f"masks: {cfg.masks} -> {'on' if used else 'off'} ({why})"
+
+
+def resolve_bg_prior(cfg: Config, masks_used: bool, bg_fraction: float) -> tuple[bool, str]:
+    """Decide whether background-coloured pixels count as free space (``bg_prior``).
+
+    Without masks nothing else tells the model that a black pixel is empty space rather than
+    a black surface, and it fills gaps with dark shells. ``auto`` turns the prior on when at
+    least 5% of the training pixels have the background colour (a dark room, lasers only,
+    synthetic data); a scene with a real backdrop has few such pixels and keeps it off.
+
+    Returns:
+        (used, note) for the run summary.
+    """
+    if masks_used:
+        return False, "background prior: off (masks are used)"
+    if cfg.bg_prior == "off" or cfg.bg_weight <= 0:
+        return False, "background prior: off"
+    share = f"{100 * bg_fraction:.0f}% of training pixels are background colour {cfg.background:g}"
+    used = cfg.bg_prior == "on" or bg_fraction >= 0.05
+    return used, f"background prior: {cfg.bg_prior} -> {'on' if used else 'off'} ({share})"
+
+
 def _psnr(mse: float) -> float:
     return -10.0 * math.log10(max(mse, 1e-12))
 
@@ -50,16 +87,22 @@ class Trainer:
         bad = [f for f in self.frames if not 0 <= f < n]
         if bad or not self.frames:
             raise FastneusError(f"frame indices {bad or '[]'} out of range 0..{n - 1}", field="frames")
-        need_masks = cfg.mask_weight > 0
-        self.bank = RayBank(scene, self.frames, self.device, load_masks=need_masks,
-                            brightness_cdf=cfg.bright_fraction > 0)
-        if need_masks and not self.bank.has_masks:
-            raise FastneusError("mask_weight > 0 but the scene has no masks for every training frame",
-                                field="mask_weight")
+        self.masks_used, self.masks_note = resolve_masks(scene, self.frames, cfg)
+        want_bg = not self.masks_used and cfg.bg_prior != "off" and cfg.bg_weight > 0
+        self.bank = RayBank(scene, self.frames, self.device, load_masks=self.masks_used,
+                            brightness_cdf=cfg.bright_fraction > 0,
+                            background=cfg.background if want_bg else None, bg_tolerance=cfg.bg_tolerance)
+        self.bg_used, self.bg_note = resolve_bg_prior(cfg, self.masks_used, self.bank.bg_fraction)
         self.proj = build_projection(scene, self.frames, self.device)
         self.field = SDFField(cfg, self.device)
         self.field.init_color_bias(self.bank.rgb.float().mean(0) / 255.0)
         self.grid = OccupancyGrid(cfg.occ_resolution, self.device)
+        self.seen = None
+        if cfg.min_views > 0:
+            from fastneus.visibility import seen_cells
+
+            self.seen = seen_cells(scene, self.frames, cfg.occ_resolution, self.device, cfg.min_views)
+            self.grid.set_allowed(self.seen)
         ill = scene.illumination
         if cfg.illum_init == "ones" or ill is None:
             ir0, ib0 = 1.0, 1.0
@@ -79,6 +122,7 @@ class Trainer:
         self.skipped = 0            # NaN/Inf steps skipped
         self.empty_steps = 0        # consecutive steps whose rays found no occupied cell
         self.history: list[dict] = []
+        self._grid_open = False     # grid forced fully occupied (warm-up) since the last update
         self.gen = torch.Generator(device=self.device)
         self.gen.manual_seed(cfg.seed)
 
@@ -87,41 +131,55 @@ class Trainer:
         return self.log_ir.exp(), self.log_ib.exp()
 
     def progress(self) -> float:
-        p = self.step / max(1, self.cfg.steps)
+        """Fraction of the run done, in [0, 1]: of ``time_budget`` when set, else of ``steps``.
+
+        Every schedule (warm-ups, coarse-to-fine, cos-anneal, sharpness floor, lr decay) reads
+        this, so the same preset works at 5 s and at 10 minutes.
+        """
         if self.cfg.time_budget > 0:
-            p = max(p, self.elapsed / self.cfg.time_budget)
+            p = self.elapsed / self.cfg.time_budget
+        else:
+            p = self.step / max(1, self.cfg.steps)
         return min(1.0, p)
 
-    def _set_lr(self) -> None:
+    def finished(self) -> bool:
+        if self.cfg.time_budget > 0:
+            return self.elapsed >= self.cfg.time_budget
+        return self.step >= self.cfg.steps
+
+    def _set_lr(self, p: float) -> None:
         c = self.cfg
-        if self.step < c.warmup_steps:
-            f = (self.step + 1) / c.warmup_steps
-        else:
-            f = c.decay_to + (1 - c.decay_to) * 0.5 * (1 + math.cos(math.pi * self.progress()))
+        decay = c.decay_to + (1 - c.decay_to) * 0.5 * (1 + math.cos(math.pi * p))
+        f = 0.1 + 0.9 * p / c.warmup_frac if p < c.warmup_frac else decay
         # from a blind init (1, 1) the pattern term is several times too bright: waiting for the
-        # geometry would let it carve the surface away, so fit it with the colours from step 0
+        # geometry would let it carve the surface away, so fit it with the colours from the start
         # (geometry frozen meanwhile), then keep learning
-        start = 0 if c.illum_init == "ones" else c.illum_warmup_steps
-        learn_illum = c.learn_illum and c.use_pattern and self.step >= start
-        frozen = self.step < c.color_warmup_steps
+        start = 0.0 if c.illum_init == "ones" else c.illum_warmup_frac
+        learn_illum = c.learn_illum and c.use_pattern and p >= start
+        frozen = p < c.color_warmup_frac
         for g in self.opt.param_groups:
             if g["name"] == "illum":
-                g["lr"] = g["base_lr"] if learn_illum else 0.0
+                # decays with the rest: a constant Adam step of lr_illum on log(i) would leave i_r, i_b
+                # jittering by ~lr_illum (3%) at the end of the run
+                g["lr"] = g["base_lr"] * decay if learn_illum else 0.0
             elif frozen and g["name"] in ("geometry", "variance"):
                 g["lr"] = 0.0
             else:
                 g["lr"] = g["base_lr"] * f
 
-    def cos_anneal(self) -> float:
-        return 1.0 if self.cfg.cos_anneal_steps <= 0 else min(1.0, self.step / self.cfg.cos_anneal_steps)
+    def cos_anneal(self, p: float | None = None) -> float:
+        p = self.progress() if p is None else p
+        return 1.0 if self.cfg.cos_anneal_frac <= 0 else min(1.0, p / self.cfg.cos_anneal_frac)
 
-    def update_grid(self) -> None:
+    def update_grid(self, p: float) -> None:
         c = self.cfg
-        if self.step < c.occ_warmup_steps:
-            if self.step == 0:
+        if p < c.occ_warmup_frac:
+            if not self._grid_open:
                 self.grid.update(self.field.sdf, 0.0, c.march_step, warmup=True)
+                self._grid_open = True
             return
-        if self.step % c.occ_update_every == 0:
+        if self.step % c.occ_update_every == 0 or self._grid_open:
+            self._grid_open = False
             # margin = half a cell diagonal keeps thin shells occupied once s is large
             self.grid.update(self.field.sdf, float(self.field.inv_s().detach()), c.march_step,
                              threshold=c.occ_threshold, margin=math.sqrt(3) / self.grid.resolution,
@@ -131,13 +189,14 @@ class Trainer:
     def train_step(self) -> dict | None:
         """One optimisation step. Returns scalars (as tensors) for logging, or None if skipped."""
         c = self.cfg
-        self.field.set_progress(self.step, self.progress())
-        self.update_grid()
-        self._set_lr()
+        p = self.progress()
+        self.field.set_progress(p)
+        self.update_grid(p)
+        self._set_lr(p)
         batch = self.bank.sample(self.n_rays, self.gen, bright_fraction=c.bright_fraction)
         i_r, i_b = self.illumination()
         out = render_rays(self.field, self.grid.bits, self.grid.resolution, self.proj, batch["origins"],
-                          batch["dirs"], batch["fidx"], c, i_r=i_r, i_b=i_b, cos_anneal=self.cos_anneal(),
+                          batch["dirs"], batch["fidx"], c, i_r=i_r, i_b=i_b, cos_anneal=self.cos_anneal(p),
                           jitter=True, curvature=c.curvature_weight > 0)
         s = out["n_samples"]
         # adapt the ray count to the sample budget (s is known on the host from marching)
@@ -152,7 +211,9 @@ class Trainer:
             self.step += 1
             return None
         self.empty_steps = 0
-        pred = out["color"] + c.background * (1.0 - out["opacity"])[:, None]
+        # the camera clips at 1: a rendered value above it is a saturated pixel, not an error
+        # (unclipped, bright pattern pixels would pull i_r down on Normal-light scenes)
+        pred = (out["color"] + c.background * (1.0 - out["opacity"])[:, None]).clamp(max=1.0)
         err = (pred - batch["rgb"]).abs()
         loss_rgb = err.mean()
         grad = out["grad"]
@@ -163,9 +224,14 @@ class Trainer:
         g_all = torch.cat([grad, grad_r])
         loss_eik = ((g_all.norm(dim=-1) - 1.0) ** 2).mean()
         loss = loss_rgb + c.eikonal_weight * loss_eik
-        if c.mask_weight > 0 and "mask" in batch:
+        if self.masks_used and "mask" in batch:
             op = out["opacity"].clamp(1e-3, 1 - 1e-3)
             loss = loss + c.mask_weight * torch.nn.functional.binary_cross_entropy(op, batch["mask"])
+        elif self.bg_used and "bg" in batch and p >= c.bg_start_frac:
+            # one-sided: background-coloured pixels are pushed to zero opacity, others are free
+            ramp = min(1.0, (p - c.bg_start_frac) / c.bg_start_frac) if c.bg_start_frac > 0 else 1.0
+            op = out["opacity"].clamp(max=1 - 1e-3)
+            loss = loss - ramp * c.bg_weight * (batch["bg"] * torch.log1p(-op)).mean()
         if c.curvature_weight > 0 and out["curv"] is not None:
             loss = loss + c.curvature_weight * out["curv"].abs().mean()
         self.opt.zero_grad(set_to_none=True)
@@ -180,20 +246,26 @@ class Trainer:
 
     # ------------------------------------------------------------------ loop
     def fit(self) -> dict:
-        """Train until ``steps`` or ``time_budget``; returns the final log record."""
+        """Train until ``steps`` or, when set, ``time_budget``; returns the final log record."""
         from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
         c = self.cfg
         save_config(c, self.out / "config.yaml")
+        self.prime()
         logf = open(self.out / "log.jsonl", "a")
         last = {}
         samples_total, t_window, steps_window = 0, time.perf_counter(), 0
-        columns = [TextColumn("[bold]train"), BarColumn(), TextColumn("{task.completed}/{task.total}"),
+        timed = c.time_budget > 0
+        # the bar counts steps, or tenths of a second of training when the run is a time budget
+        total = int(round(c.time_budget * 10)) if timed else c.steps
+        done = (lambda: min(total, int(self.elapsed * 10))) if timed else (lambda: self.step)
+        unit = "{task.completed}/{task.total} ds" if timed else "{task.completed}/{task.total}"
+        columns = [TextColumn("[bold]train"), BarColumn(), TextColumn(unit),
                    TextColumn("{task.fields[info]}"), TimeElapsedColumn(), TextColumn("ETA"), TimeRemainingColumn()]
         progress = Progress(*columns, console=self.console, disable=self.console is None, transient=False)
         with progress:
-            task = progress.add_task("train", total=c.steps, completed=self.step, info="")
-            while self.step < c.steps and not (c.time_budget > 0 and self.elapsed >= c.time_budget):
+            task = progress.add_task("train", total=total, completed=done(), info="")
+            while not self.finished():
                 t0 = time.perf_counter()
                 rec = self.train_step()
                 if self.device.type == "cuda" and (self.step % c.log_every == 0):
@@ -202,13 +274,16 @@ class Trainer:
                 steps_window += 1
                 if rec is not None:
                     samples_total += rec["samples"]
-                if self.step % c.log_every == 0 or self.step >= c.steps or rec is None and self.step == 1:
+                end = self.finished()
+                if self.step % c.log_every == 0 or end or rec is None and self.step == 1:
                     if rec is not None:
                         now = time.perf_counter()
                         i_r, i_b = (float(x.detach()) for x in self.illumination())
-                        last = {"step": self.step, "time": round(self.elapsed, 3), "loss": float(rec["loss"]),
+                        last = {"step": self.step, "time": round(self.elapsed, 3), "progress": round(self.progress(), 4),
+                                "loss": float(rec["loss"]),
                                 "l1": float(rec["l1"]), "psnr": _psnr(float(rec["mse"])), "eik": float(rec["eik"]),
                                 "i_r": i_r, "i_b": i_b, "inv_s": float(self.field.inv_s().detach()),
+                                "levels": self.field.active_levels,
                                 "rays": self.n_rays, "samples_per_ray": round(rec["spr"], 2),
                                 "it_s": steps_window / max(1e-9, now - t_window),
                                 "samples_s": samples_total / max(1e-9, now - t_window),
@@ -220,12 +295,20 @@ class Trainer:
                         progress.update(task, info=(f"loss {last['loss']:.4f} psnr {last['psnr']:.1f} "
                                                     f"i_r {i_r:.3f} i_b {i_b:.3f} spr {last['samples_per_ray']:.0f} "
                                                     f"{last['it_s']:.1f} it/s"))
-                progress.update(task, completed=self.step)
+                progress.update(task, completed=done())
                 if self.step % c.save_every == 0:
                     self.save()
         logf.close()
         self.save()
         return last
+
+    def prime(self) -> None:
+        """Load (on a machine's first run: compile) every Warp kernel of a step before the clock
+        starts, so a time budget is spent on training; no parameter changes."""
+        from fastneus.kernels import prepare_kernels
+
+        prepare_kernels(self.device, say=self.console.print if self.console is not None else None,
+                        backend=self.cfg.backend)
 
     # ------------------------------------------------------------------ checkpoints
     def state(self) -> dict:
@@ -249,7 +332,7 @@ class Trainer:
             self.log_ib.copy_(st["log_ib"].to(self.device))
         self.step, self.elapsed = int(st["step"]), float(st.get("elapsed", 0.0))
         self.n_rays, self.skipped = int(st.get("n_rays", self.n_rays)), int(st.get("skipped", 0))
-        self.field.set_progress(self.step, self.progress())
+        self.field.set_progress(self.progress())
         if with_optimizer:
             self.opt.load_state_dict(st["optimizer"])
             for g in self.opt.param_groups:  # base_lr may differ if the config changed
