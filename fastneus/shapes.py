@@ -11,7 +11,7 @@ import trimesh
 
 from .errors import FastneusError
 
-SHAPES = ("sphere", "torus", "toy")
+SHAPES = ("sphere", "torus", "toy", "rock")
 
 
 def _coloured(m: trimesh.Trimesh, rgb) -> trimesh.Trimesh:
@@ -43,6 +43,29 @@ def toy_parts() -> list[trimesh.Trimesh]:
     return [cup, fin, torus, ball]
 
 
+def rock(seed: int = 3) -> trimesh.Trimesh:
+    """A scanned-stone-like closed surface: an icosphere displaced radially by ridged noise.
+
+    Random Fourier features (smooth on the sphere) give the broad lumps, their absolute values
+    (ridged) the creases; the result is star-shaped, so it is closed and never self-intersects.
+    """
+    rng = np.random.default_rng(seed)
+    m = trimesh.creation.icosphere(subdivisions=5, radius=1.0)
+    v = np.asarray(m.vertices)
+    disp = np.zeros(len(v))
+    for octave, (n, freq, amp, ridged) in enumerate(((6, 1.5, 0.22, False), (12, 3.5, 0.10, True),
+                                                      (24, 8.0, 0.03, True))):
+        d = rng.normal(size=(n, 3))
+        d /= np.linalg.norm(d, axis=1, keepdims=True)
+        phase = rng.uniform(0, 2 * np.pi, n)
+        w = np.sin(freq * v @ d.T + phase) / np.sqrt(n)
+        layer = (1.0 - 2.0 * np.abs(w)) if ridged else w
+        disp += amp * layer.sum(1)
+    r = 1.0 + disp - disp.mean()
+    m.vertices = v * np.clip(r, 0.5, None)[:, None] * np.array([1.0, 0.8, 0.65])  # a flattish stone
+    return _coloured(m, (150, 140, 125))
+
+
 def make_shape(name: str) -> trimesh.Trimesh:
     """A built-in shape (before normalisation) with per-vertex colours."""
     if name == "sphere":
@@ -54,6 +77,8 @@ def make_shape(name: str) -> trimesh.Trimesh:
     if name == "toy":
         parts = toy_parts()
         return trimesh.util.concatenate(parts)
+    if name == "rock":
+        return rock()
     raise FastneusError(f"unknown shape {name!r}; use one of {', '.join(SHAPES)}", field="--shape")
 
 

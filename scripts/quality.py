@@ -1,17 +1,35 @@
-"""Quality benchmark: run the presets on synthetic scenes and tabulate metrics and wall times.
+"""Quality matrix: the default run on {shapes} x {Normal, Dark} x {masks, no masks} x {budgets}.
 
-    python scripts/quality.py --device cuda|cpu [--only NAME ...] [--out DIR] [--no-md] [key=value ...]
+    python scripts/quality.py [--device cuda|cpu] [--shapes bunny,rock,toy,bear] [--illums normal,dark]
+                              [--masks on,off] [--budgets 5,10,20,60] [--size 200] [--views 20]
+                              [--out DIR] [--tag NAME] [--report-from A.jsonl,B.jsonl] [--no-md]
+                              [--variants "name:k=v k=v;name2:k=v"] [key=value ...]
 
-Scenes (synthesised once into --cache): the built-in toy scene and a torus, 20 views in
-Normal and Dark illumination with the paper's 4 cross-laser projectors; a one-shot
-cross-laser view and a one-shot dense (colourful line) view. Illumination is estimated
-from i_r = i_b = 1 where it is learned. Writes JSON, prints a table and updates the
-"quality-<device>" section of docs/BENCHMARKS.md.
+Every cell is ``fastneus train SCENE time_budget=B`` with the device's default preset
+(fewview on GPU, cpu-quick on CPU) and nothing else, except ``masks=off`` in the no-mask
+column (the scene's masks are hidden from the run, as for a capture without masks). Extra
+``key=value`` arguments apply to every cell, and ``--variants`` runs every cell once per named
+set of overrides (both for tuning sweeps; the published matrix uses neither). Scenes: the paper's rig (4 cross-laser projectors at +-0.2 / +-0.6 m), ``--views``
+views of ``--size`` px, object ~2 m across at 4 m; shapes:
+
+- ``bunny``: the Stanford bunny (a real range scan), ``bear``: warp-lang's bear asset
+  (both converted once by ``scripts/assets.py`` into ``scripts/.assets``);
+- ``rock``: a procedural scanned-stone-like surface (``fastneus synth --shape rock``);
+- ``toy``: the built-in composite (cup, 2-cm fin, torus, sphere).
+
+Metrics (mm; F-score at 1% of the GT bounding-box diagonal): Chamfer GT->rec (the paper's
+number), the same with the paper's 1-sigma filter, rec->GT (floaters show here), symmetric,
+F-score, |i_r - 0.4| and |i_b - 0.1| (learned from the file's values, the default), texture
+PSNR (pattern-free render vs the GT pattern-free image). Results stream to
+``OUT/quality-<tag>.jsonl`` (one line per cell; a re-run skips cells already there), then a
+table goes to ``OUT/quality-<tag>.md`` and to the section ``quality-matrix-<device>`` of
+docs/BENCHMARKS.md.
 """
 from __future__ import annotations
 
 import argparse
 import json
+import statistics
 import time
 from pathlib import Path
 
@@ -19,82 +37,165 @@ import torch
 
 from benchutil import ROOT, git_rev, machine, md_table, update_section, write_json
 
-# name -> (scene spec, preset, overrides); the scene spec feeds fastneus.synth.synthesize
-SCENES = {
-    "toy-dark20": dict(shape="toy", views=20, illum="dark", pattern="crosslaser"),
-    "toy-normal20": dict(shape="toy", views=20, illum="normal", pattern="crosslaser"),
-    "torus-dark20": dict(shape="torus", views=20, illum="dark", pattern="crosslaser"),
-    "toy-oneshot-laser": dict(shape="toy", views=1, illum="normal", pattern="crosslaser"),
-    "toy-oneshot-dense": dict(shape="toy", views=1, illum="normal", pattern="colorline"),
-}
-RUNS = [
-    ("active-dark", "toy-dark20", "fewview", ["illum_init=ones"]),
-    ("passive-dark", "toy-dark20", "passive", []),
-    ("active-normal", "toy-normal20", "fewview", ["illum_init=ones"]),
-    ("active-torus-dark", "torus-dark20", "fewview", ["illum_init=ones"]),
-    ("oneshot-laser", "toy-oneshot-laser", "oneshot", []),
-    ("oneshot-dense", "toy-oneshot-dense", "oneshot", []),
-]
-CPU_SIZE, GPU_SIZE = (200, 200), (800, 800)
+ASSETS = Path(__file__).resolve().parent / ".assets"
+BUILTIN = ("rock", "toy", "torus", "sphere")
+METRICS = ["chamfer_gt2rec_mm", "chamfer_gt2rec_filtered_mm", "chamfer_rec2gt_mm", "chamfer_sym_mm", "fscore",
+           "i_r_err", "i_b_err", "psnr_texture"]
+SHORT = {"chamfer_gt2rec_mm": "GT->rec", "chamfer_gt2rec_filtered_mm": "1-sigma", "chamfer_rec2gt_mm": "rec->GT",
+         "chamfer_sym_mm": "sym", "fscore": "F", "i_r_err": "i_r err", "i_b_err": "i_b err",
+         "psnr_texture": "tex PSNR"}
+
+
+def scene_dir(cache: Path, shape: str, illum: str, views: int, size: int) -> Path:
+    return cache / f"{shape}-{illum}{views}-{size}"
+
+
+def make_scene(cache: Path, shape: str, illum: str, views: int, size: int, device: str, assets: Path):
+    """Synthesise (once) and load a matrix scene."""
+    from fastneus.data import Scene
+    from fastneus.synth import synthesize
+
+    d = scene_dir(cache, shape, illum, views, size)
+    if not (d / "scene.json").is_file():
+        src = dict(shape=shape) if shape in BUILTIN else dict(mesh=assets / f"{shape}.ply")
+        if "mesh" in src and not src["mesh"].is_file():
+            raise SystemExit(f"{src['mesh']}: missing; run `python scripts/assets.py` once (needs usd-core)")
+        synthesize(d, views=views, size=(size, size), illum=illum, pattern="crosslaser", seed=0, device=device,
+                   progress=False, contact_sheet=True, **src)
+    return Scene.load(d)
+
+
+def run_cell(scene, device: str, budget: float, masks: str, extra: list[str], out: Path) -> dict:
+    from fastneus.config import load_config
+    from fastneus.pipeline import train_scene
+
+    preset = "fewview" if device.startswith("cuda") else "cpu-quick"
+    ov = [f"time_budget={budget}"] + (["masks=off"] if masks == "off" else []) + list(extra)
+    cfg = load_config(preset, ov)
+    t = time.perf_counter()
+    trainer, m = train_scene(scene, cfg, out, device)
+    row = {k: m.get(k) for k in METRICS + ["steps", "train_seconds", "i_r", "i_b", "masks_used", "bg_prior_used"]}
+    row["wall_s"] = round(time.perf_counter() - t, 1)
+    return row
+
+
+def summarise(rows: list[dict], budgets: list[float]) -> tuple[str, dict]:
+    """Markdown tables (one per metric group) and a dict of the target checks."""
+    for r in rows:
+        r.setdefault("variant", "default")
+    rows = sorted(rows, key=lambda r: (r["variant"], r["shape"], r["illum"], r["masks"], r["budget"]))
+    multi = len({r["variant"] for r in rows}) > 1
+    lead = (["variant"] if multi else []) + ["shape", "illum", "masks"]
+    full = md_table([{**r, **{SHORT.get(k, k): r.get(k) for k in METRICS}} for r in rows],
+                    lead + ["budget", "steps"] + [SHORT[k] for k in METRICS])
+    # symmetric Chamfer as a compact grid: one row per (shape, illum, masks), one column per budget
+    grid_rows = {}
+    for r in rows:
+        key = (r["variant"], r["shape"], r["illum"], r["masks"])
+        g = grid_rows.setdefault(key, {"variant": key[0], "shape": key[1], "illum": key[2], "masks": key[3]})
+        g[f"{r['budget']:g} s"] = r.get("chamfer_sym_mm")
+        g[f"F {r['budget']:g} s"] = r.get("fscore")
+    bcols = [f"{b:g} s" for b in budgets] + [f"F {b:g} s" for b in budgets]
+    grid = md_table(list(grid_rows.values()), lead + bcols)
+    checks = {}
+    by = {(r["variant"], r["shape"], r["illum"], r["masks"], r["budget"]): r for r in rows}
+    ratios_floater, ratios_nomask = [], []
+    for (v, s, il, mk, b), r in by.items():
+        if mk == "off" and r.get("chamfer_gt2rec_mm"):
+            ratios_floater.append(r["chamfer_rec2gt_mm"] / r["chamfer_gt2rec_mm"])
+            on = by.get((v, s, il, "on", b))
+            if on and on.get("chamfer_sym_mm"):
+                ratios_nomask.append(r["chamfer_sym_mm"] / on["chamfer_sym_mm"])
+    if ratios_floater:
+        checks["no-mask rec->GT / GT->rec (max, median)"] = (max(ratios_floater), statistics.median(ratios_floater))
+    if ratios_nomask:
+        checks["no-mask sym / masked sym (max, median)"] = (max(ratios_nomask), statistics.median(ratios_nomask))
+    mono = []
+    for key in {(r["variant"], r["shape"], r["illum"], r["masks"]) for r in rows}:
+        seq = [by[key + (b,)]["chamfer_sym_mm"] for b in budgets if key + (b,) in by]
+        mono.append(all(seq[i + 1] <= seq[i] * 1.0001 for i in range(len(seq) - 1)))
+    checks["cells with sym Chamfer non-increasing over budgets"] = f"{sum(mono)}/{len(mono)}"
+    return f"Symmetric Chamfer (mm) and F-score by budget:\n\n{grid}\nAll metrics:\n\n{full}", checks
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
-    ap.add_argument("--only", nargs="*", help="run names to run (default all)")
+    ap.add_argument("--shapes", default="bunny,rock,toy,bear")
+    ap.add_argument("--illums", default="normal,dark")
+    ap.add_argument("--masks", default="on,off")
+    ap.add_argument("--budgets", default=None, help="seconds (default 5,10,20,60 on GPU, 30,60,120 on CPU)")
+    ap.add_argument("--size", type=int, default=200)
+    ap.add_argument("--views", type=int, default=20)
+    ap.add_argument("--assets", default=str(ASSETS))
     ap.add_argument("--cache", default="/tmp/fastneus-quality-scenes")
-    ap.add_argument("--out", default="/tmp/fastneus-quality-runs")
-    ap.add_argument("--no-md", action="store_true")
-    ap.add_argument("overrides", nargs="*", help="key=value for every run (e.g. steps=500)")
+    ap.add_argument("--out", default="/tmp/fastneus-quality")
+    ap.add_argument("--tag", default=None, help="name of this matrix (default: the device kind)")
+    ap.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: torch's choice)")
+    ap.add_argument("--report-from", default=None, help="only tabulate these JSONL files (comma-separated)")
+    ap.add_argument("--no-md", action="store_true", help="do not update docs/BENCHMARKS.md")
+    ap.add_argument("--variants", default=None, help='named override sets: "name:k=v k=v;name2:k=v"')
+    ap.add_argument("overrides", nargs="*", help="key=value applied to every cell (tuning only)")
     args = ap.parse_args()
 
-    from fastneus.config import load_config
-    from fastneus.data import Scene
-    from fastneus.pipeline import train_scene
-    from fastneus.synth import synthesize
-
     gpu = args.device.startswith("cuda")
-    size = GPU_SIZE if gpu else CPU_SIZE
-    rows = []
-    for name, scene_name, preset, extra in RUNS:
-        if args.only and name not in args.only:
-            continue
-        spec = SCENES[scene_name]
-        sdir = Path(args.cache) / f"{scene_name}-{size[0]}"
-        t = time.perf_counter()
-        if not (sdir / "scene.json").is_file():
-            synthesize(sdir, size=size, seed=0, device=args.device, progress=False, **spec)
-        t_synth = time.perf_counter() - t
-        scene = Scene.load(sdir)
-        if not gpu and preset != "paper":
-            extra = extra + (["view_dependent=false", "curvature_weight=0.0005"] if preset == "oneshot" else [])
-            preset = "cpu-quick"
-        cfg = load_config(preset, extra + list(args.overrides))
-        t = time.perf_counter()
-        trainer, m = train_scene(scene, cfg, Path(args.out) / name, args.device)
-        wall = time.perf_counter() - t
-        row = {"run": name, "scene": f"{scene_name} {size[0]}x{size[1]}", "preset": cfg.preset, "steps": m["steps"],
-               "train_s": m["train_seconds"], "total_s": wall, "synth_s": t_synth}
-        for k in ("chamfer_gt2rec_mm", "chamfer_gt2rec_filtered_mm", "visible_gt2rec_mm", "chamfer_sym_mm", "fscore",
-                  "psnr_pattern", "psnr_texture", "depth_mae_mm", "i_r", "i_b"):
-            if k in m:
-                row[k] = m[k]
-        rows.append(row)
-        print(json.dumps(row), flush=True)
-    cols = ["run", "scene", "preset", "steps", "train_s", "chamfer_gt2rec_mm", "chamfer_gt2rec_filtered_mm",
-            "visible_gt2rec_mm", "fscore", "psnr_pattern", "psnr_texture", "depth_mae_mm", "i_r", "i_b"]
-    table = md_table(rows, cols)
-    print(table)
     kind = "cuda" if gpu else "cpu"
-    write_json(Path(args.out) / f"quality-{kind}.json", {"machine": machine(args.device), "git": git_rev(),
-                                                         "overrides": args.overrides, "rows": rows})
+    tag = args.tag or kind
+    budgets = [float(b) for b in (args.budgets or ("5,10,20,60" if gpu else "30,60,120")).split(",")]
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    jsonl = out / f"quality-{tag}.jsonl"
+
+    if args.report_from:
+        rows = [json.loads(line) for f in args.report_from.split(",") for line in Path(f).read_text().splitlines()
+                if line.strip()]
+    else:
+        variants = {"default": []}
+        if args.variants:
+            variants = {}
+            for part in args.variants.split(";"):
+                name, _, ov = part.partition(":")
+                variants[name.strip()] = ov.split()
+        done = set()
+        if jsonl.is_file():
+            for line in jsonl.read_text().splitlines():
+                r = json.loads(line)
+                done.add((r.get("variant", "default"), r["shape"], r["illum"], r["masks"], r["budget"]))
+        for shape in args.shapes.split(","):
+            for illum in args.illums.split(","):
+                scene = make_scene(Path(args.cache), shape, illum, args.views, args.size, args.device,
+                                   Path(args.assets))
+                for masks in args.masks.split(","):
+                    for b in budgets:
+                        for vname, vov in variants.items():
+                            if (vname, shape, illum, masks, b) in done:
+                                continue
+                            run = out / "runs" / f"{tag}-{vname}-{shape}-{illum}-m{masks}-{b:g}s"
+                            ov = list(args.overrides) + vov
+                            r = run_cell(scene, args.device, b, masks, ov, run)
+                            r.update(variant=vname, shape=shape, illum=illum, masks=masks, budget=b, overrides=ov)
+                            print(json.dumps(r), flush=True)
+                            with open(jsonl, "a") as f:
+                                f.write(json.dumps(r) + "\n")
+        rows = [json.loads(line) for line in jsonl.read_text().splitlines() if line.strip()]
+    budgets_seen = sorted({r["budget"] for r in rows})
+    text, checks = summarise(rows, budgets_seen)
+    print(text)
+    for k, v in checks.items():
+        print(f"{k}: {v}")
+    write_json(out / f"quality-{tag}.json", {"machine": machine(args.device), "git": git_rev(), "rows": rows,
+                                            "checks": {k: str(v) for k, v in checks.items()}})
+    (out / f"quality-{tag}.md").write_text(text)
     if not args.no_md:
-        ov = " ".join(args.overrides)
-        text = (f"### Reconstruction quality on {kind.upper()}\n\nMachine: {machine(args.device)}; commit {git_rev()}.\n"
-                f"Command: `python scripts/quality.py --device {args.device} {ov}`. Chamfer in mm on objects ~2 m "
-                f"across (GT->reconstruction as in the paper; 'filtered' drops distances beyond mean + 1 sigma); "
-                f"i_r, i_b estimated from 1, 1 where learned (GT 0.4, 0.1).\n\n{table}")
-        update_section(ROOT / "docs" / "BENCHMARKS.md", f"quality-{kind}", text)
+        ov = (" " + " ".join(args.overrides)) if args.overrides else ""
+        head = (f"### Quality matrix on {kind.upper()} ({tag})\n\nMachine: {machine(args.device)}; commit {git_rev()}. "
+                f"Command: `python scripts/quality.py --device {args.device}{ov}` (scenes: {args.views} views "
+                f"{args.size}x{args.size}, 4 cross-laser projectors, object ~2 m across; default preset, "
+                f"`time_budget` per column; 'off' = masks hidden from the run). One run per cell.\n\n")
+        chk = "".join(f"- {k}: {v}\n" for k, v in checks.items())
+        update_section(ROOT / "docs" / "BENCHMARKS.md", f"quality-matrix-{tag}", head + text + "\n" + chk)
 
 
 if __name__ == "__main__":
