@@ -55,7 +55,7 @@ class Config:
     # --- occupancy grid ---
     occ_resolution: int = 128
     occ_update_every: int = 16
-    occ_warmup_frac: float = 0.08      # every cell occupied for this fraction of the run
+    occ_warmup_frac: float = 0.2       # every cell occupied for this fraction of the run
     occ_threshold: float = 0.01
 
     # --- hash grid ---
