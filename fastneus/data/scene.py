@@ -212,6 +212,14 @@ def _read_rgb(path: Path, file, fld: str) -> np.ndarray:
     return np.ascontiguousarray(im[:, :, ::-1])
 
 
+def _read_npy(path: Path, file, fld: str) -> np.ndarray:
+    """A numeric ``.npy`` as float32; never unpickles (ground truth files are untrusted too)."""
+    try:
+        return np.asarray(np.load(path, allow_pickle=False), dtype=np.float32)
+    except Exception as e:  # noqa: BLE001 - corrupt, pickled or non-numeric: one line
+        raise _err(f"cannot read {path}: {e}".splitlines()[0], file, fld) from None
+
+
 def _list(a: np.ndarray | None):
     return None if a is None else np.asarray(a, dtype=np.float64).tolist()
 
@@ -549,8 +557,7 @@ class Scene:
         rel = self.frames[i].gt.get("depth")
         if rel is None:
             return None
-        d = np.load(self.path(rel))
-        return np.asarray(d, dtype=np.float32)
+        return _read_npy(self.path(rel), self.root / "scene.json", f"frames[{i}].gt.depth")
 
     def gt_normal(self, i: int) -> np.ndarray | None:
         """float32 [H, W, 3] ground-truth world normals (zero = background) or None."""
@@ -558,7 +565,7 @@ class Scene:
         if rel is None:
             return None
         if rel.endswith(".npy"):
-            return np.asarray(np.load(self.path(rel)), dtype=np.float32)
+            return _read_npy(self.path(rel), self.root / "scene.json", f"frames[{i}].gt.normal")
         im = _read_rgb(self.path(rel), self.root / "scene.json", f"frames[{i}].gt.normal").astype(np.float32)
         n = im / 255.0 * 2.0 - 1.0
         n[np.all(im == 0, axis=-1)] = 0.0  # black = background

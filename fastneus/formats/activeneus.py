@@ -24,6 +24,7 @@ import numpy as np
 
 from fastneus.data.scene import FORMAT, VERSION, Scene, check_pose, image_size, rigid_inverse
 from fastneus.errors import FastneusError
+from fastneus.formats.safe_npz import npz_array, open_npz, read_number_dict
 
 NPZ = "cameras_sphere.npz"
 IMG_EXT = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
@@ -40,10 +41,9 @@ def _images(folder: Path) -> list[Path]:
 
 def _get(npz, key: str, shape: tuple[int, ...], file: Path) -> np.ndarray:
     """A finite float64 array ``npz[key]`` of exactly ``shape`` (-1 = any length)."""
-    if key not in npz.files:
-        raise FastneusError("missing key", file=file, field=key)
+    a = npz_array(npz, key, file)
     try:
-        a = np.asarray(npz[key], dtype=np.float64)
+        a = np.asarray(a, dtype=np.float64)
     except (TypeError, ValueError):
         raise FastneusError(f"expected a numeric array of shape {shape}", file=file, field=key) from None
     if a.ndim != len(shape) or any(s != -1 and s != t for s, t in zip(shape, a.shape)):
@@ -83,10 +83,7 @@ def open_npz_folder(root: Path):
     npz_path = root / NPZ
     if not npz_path.is_file():
         raise FastneusError("missing camera file", file=npz_path)
-    try:
-        npz = np.load(npz_path, allow_pickle=True)
-    except Exception as e:  # noqa: BLE001 - corrupt file: one line, not a trace
-        raise FastneusError(f"unreadable npz: {e}", file=npz_path) from None
+    npz = open_npz(npz_path)  # never unpickles: scenes are untrusted
     images = _images(root / "image")
     if not images:
         raise FastneusError("no images found (expected image/NNN.png)", file=root / "image")
@@ -246,22 +243,15 @@ def read_activeneus(path: str | os.PathLike) -> Scene:
 
     illum = {"i_r": 0.4, "i_b": 0.1, "ambient": 1.0, "known": False}
     if "illumination_params" in npz.files:
-        ip = npz["illumination_params"]
-        ip = ip.item() if isinstance(ip, np.ndarray) and ip.dtype == object else ip
-        if not isinstance(ip, dict):
-            raise FastneusError("expected a dict {ambient, diffuse, emissive}", file=npz_path,
-                                field="illumination_params")
+        # the official format pickles this dict: decoded by a restricted unpickler
+        ip = read_number_dict(npz, "illumination_params", npz_path)
         for key, name in (("diffuse", "i_r"), ("emissive", "i_b"), ("ambient", "ambient")):
             if key not in ip:
                 raise FastneusError("missing key", file=npz_path, field=f"illumination_params.{key}")
-            try:
-                v = float(ip[key])
-            except (TypeError, ValueError):
-                v = float("nan")
-            if not np.isfinite(v):
+            if not np.isfinite(ip[key]):
                 raise FastneusError(f"expected a finite number, got {ip[key]!r}", file=npz_path,
                                     field=f"illumination_params.{key}")
-            illum[name] = v
+            illum[name] = ip[key]
 
     data = {"format": FORMAT, "version": VERSION, "units": "m", "name": root.resolve().name,
             "bounds": {"center": S[:3, 3].tolist(), "radius": float(s)},

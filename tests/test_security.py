@@ -1,0 +1,156 @@
+"""No code runs from scene files or checkpoints; run folders are not silently replaced; Ctrl-C
+saves a checkpoint that --resume continues.
+
+Each malicious file is first shown to be live (a plain unpickler does run its payload), so
+the tests cannot pass vacuously.
+"""
+from __future__ import annotations
+
+import io
+import json
+import os
+import pickle
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from conftest import SMALL_RUN
+from fastneus.cli import main
+from fastneus.errors import FastneusError
+
+SAMPLE = Path("/work/shared/data/activeneus_sample")
+if not SAMPLE.is_dir():
+    SAMPLE = Path(__file__).resolve().parents[2] / "shared" / "data" / "activeneus_sample"
+
+
+class Payload:
+    """Unpickling this creates ``marker``: stands for any command an attacker would run."""
+
+    def __init__(self, marker: Path):
+        self.marker = str(marker)
+
+    def __reduce__(self):
+        return exec, (f"open({self.marker!r}, 'w').close()",)
+
+
+def _live(marker: Path, load) -> None:
+    """Check that ``load()`` with a permissive unpickler runs the payload, then reset."""
+    load()
+    assert marker.exists(), "test payload is not live"
+    marker.unlink()
+
+
+def _one_line_error(capsys, *needles: str) -> str:
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "Traceback" not in err and "internal error" not in err, err
+    for n in needles:
+        assert n in err, (n, err)
+    return err
+
+
+@pytest.fixture(scope="module")
+def an_scene(small_scene, tmp_path_factory):
+    """The small scene in the ActiveNeuS format."""
+    from fastneus.data import Scene
+    from fastneus.formats.activeneus import write_activeneus
+
+    out = tmp_path_factory.mktemp("an") / "scene"
+    write_activeneus(Scene.load(small_scene), out)
+    return out
+
+
+def _npz_with(src: Path, dst: Path, **entries) -> Path:
+    """Copy scene folder ``src`` to ``dst`` with npz entries replaced (object values are pickled)."""
+    shutil.copytree(src, dst)
+    with np.load(src / "cameras_sphere.npz", allow_pickle=True) as z:  # our own file: trusted
+        d = dict(z)
+    d.update(entries)
+    np.savez(dst / "cameras_sphere.npz", **d)
+    return dst / "cameras_sphere.npz"
+
+
+# --------------------------------------------------------------------------- scene files
+@pytest.mark.parametrize("key", ["illumination_params", "cam_mat_0"])
+def test_pickled_payload_in_npz_does_not_run(an_scene, tmp_path, capsys, key):
+    marker = tmp_path / "pwned"
+    npz = _npz_with(an_scene, tmp_path / "evil", **{key: np.array(Payload(marker), dtype=object)})
+    _live(marker, lambda: np.load(npz, allow_pickle=True)[key])
+    assert main(["train", str(npz.parent), "--out", str(tmp_path / "run"), "--device", "cpu"]) == 2
+    _one_line_error(capsys, "cameras_sphere.npz", key)
+    assert not marker.exists()
+    assert not (tmp_path / "run").exists()
+
+
+def test_payload_inside_the_illumination_dict_does_not_run(an_scene, tmp_path):
+    from fastneus.formats.detect import load_scene
+
+    marker = tmp_path / "pwned"
+    ip = {"ambient": 1.0, "diffuse": Payload(marker), "emissive": 0.1}
+    npz = _npz_with(an_scene, tmp_path / "evil", illumination_params=np.array(ip, dtype=object))
+    _live(marker, lambda: np.load(npz, allow_pickle=True)["illumination_params"])
+    with pytest.raises(FastneusError, match="refused to unpickle.*builtins.exec"):
+        load_scene(npz.parent)
+    assert not marker.exists()
+
+
+def test_payload_in_unused_entry_is_never_unpickled(an_scene, tmp_path):
+    """``aabb`` is pickled in the official format but unused: the scene loads, the payload stays inert."""
+    from fastneus.formats.detect import load_scene
+
+    marker = tmp_path / "pwned"
+    npz = _npz_with(an_scene, tmp_path / "evil", aabb=np.array(Payload(marker), dtype=object))
+    _live(marker, lambda: np.load(npz, allow_pickle=True)["aabb"])
+    assert len(load_scene(npz.parent).frames) == 3
+    assert not marker.exists()
+
+
+def test_official_sample_and_numpy_scalar_dicts_still_load(an_scene, tmp_path):
+    from fastneus.formats.activeneus import read_activeneus
+    from fastneus.formats.safe_npz import open_npz, read_number_dict
+
+    il = read_activeneus(SAMPLE).illumination
+    assert (il.ambient, il.i_r, il.i_b) == (1.0, 0.4, 0.1)
+    # numpy scalars as values, pickled by this numpy (numpy._core) and as numpy 1.x wrote them (numpy.core)
+    ip = np.array({"ambient": np.float64(1.0), "diffuse": np.float32(0.25), "emissive": np.int64(0)}, dtype=object)
+    npz = _npz_with(an_scene, tmp_path / "np2", illumination_params=ip)
+    got = read_number_dict(open_npz(npz), "illumination_params", npz)
+    assert got == {"ambient": 1.0, "diffuse": 0.25, "emissive": 0.0}
+    assert read_activeneus(npz.parent).illumination.i_r == 0.25
+    buf = io.BytesIO()
+    np.save(buf, ip)
+    raw = buf.getvalue()
+    h = raw.index(b"\x80")  # protocol-3 pickle: GLOBAL opcodes name modules as newline-terminated text
+    old = raw[:h] + pickle.dumps(ip, protocol=3).replace(b"numpy._core.", b"numpy.core.")
+    assert b"numpy.core.multiarray\nscalar" in old
+    import zipfile
+
+    with zipfile.ZipFile(npz, "a") as zf:
+        zf.writestr("legacy.npy", old)
+    assert read_number_dict(open_npz(npz), "legacy", npz) == got
+
+
+@pytest.mark.parametrize("value,needle", [
+    (np.array([{"ambient": 1.0}], dtype=object), "shape (1,)"),
+    (np.array(["a", "b"], dtype=object), "shape (2,)"),
+    (np.array({"ambient": 1.0, "diffuse": "0.4", "emissive": 0.1}, dtype=object), "illumination_params.diffuse"),
+    (np.array({"ambient": 1.0, "diffuse": np.float64("nan"), "emissive": 0.1}, dtype=object), "finite"),
+    (np.array({"ambient": 1.0, "emissive": 0.1}, dtype=object), "illumination_params.diffuse"),
+    (np.array(0.4), "expected a dict"),
+    (np.array({"ambient": 1.0, "diffuse": np.array([0.4]), "emissive": 0.1}, dtype=object), "got an array"),
+])
+def test_illumination_params_that_are_not_a_number_dict(an_scene, tmp_path, value, needle):
+    from fastneus.formats.detect import load_scene
+
+    npz = _npz_with(an_scene, tmp_path / "bad", illumination_params=value)
+    with pytest.raises(FastneusError, match="illumination_params") as e:
+        load_scene(npz.parent)
+    assert needle in str(e.value)
+
+
