@@ -65,14 +65,15 @@ def train_scene(scene, cfg: Config, out: Path, device: str, console=None, resume
     Returns:
         (trainer, metrics) — metrics empty when ``finish`` is False.
     """
-    from fastneus.train.trainer import CKPT_NAME, Trainer, load_checkpoint
+    from fastneus.train.checkpoint import CKPT_NAME, load_checkpoint, restore
+    from fastneus.train.trainer import Trainer
 
     out = Path(out)
     trainer = Trainer(scene, cfg, out, device, console)
     if resume:
         if not (out / CKPT_NAME).is_file():
             raise FastneusError("--resume given but the run folder has no checkpoint", file=str(out / CKPT_NAME))
-        trainer.load_state(load_checkpoint(out, map_location=device))
+        restore(trainer, load_checkpoint(out, map_location=device), out / CKPT_NAME)
     if console is not None:
         console.print(trainer.masks_note)
         console.print(trainer.bg_note)

@@ -154,3 +154,51 @@ def test_illumination_params_that_are_not_a_number_dict(an_scene, tmp_path, valu
     assert needle in str(e.value)
 
 
+# --------------------------------------------------------------------------- checkpoints
+@pytest.fixture(scope="module")
+def small_run(small_scene, tmp_path_factory):
+    """A run folder with a checkpoint (no training needed), run.json and an earlier mesh."""
+    from fastneus.config import load_config
+    from fastneus.formats.detect import load_scene
+    from fastneus.train.trainer import Trainer
+
+    run = tmp_path_factory.mktemp("run") / "r"
+    tr = Trainer(load_scene(small_scene), load_config("cpu-quick", SMALL_RUN), run, "cpu")
+    tr.save()
+    (run / "run.json").write_text(json.dumps({"scene": str(small_scene)}))
+    (run / "mesh.ply").write_text("earlier result\n")
+    return run
+
+
+def test_checkpoint_is_plain_data_and_round_trips(small_run, tmp_path):
+    from fastneus.train.checkpoint import CKPT_NAME, load_checkpoint, plain
+
+    st = torch.load(small_run / CKPT_NAME, weights_only=True)  # torch's restricted unpickler accepts it
+    assert st["step"] == 0 and isinstance(st["field"], dict) and isinstance(st["gen"], torch.Tensor)
+    assert load_checkpoint(small_run)["config"]["log2_table"] == 12
+    assert plain({"a": np.float32(2.0), "b": (np.arange(3), [np.int64(1)])})["b"][1] == [1]
+    with pytest.raises(TypeError, match="state.x"):
+        plain({"x": Path(".")})
+
+
+@pytest.mark.parametrize("verb", ["mesh", "render", "eval", "resume"])
+def test_malicious_checkpoint_does_not_run(small_run, small_scene, tmp_path, capsys, verb):
+    from fastneus.train.checkpoint import CKPT_NAME
+
+    run = tmp_path / "run"
+    shutil.copytree(small_run, run)
+    marker = tmp_path / "pwned"
+    st = torch.load(run / CKPT_NAME, weights_only=True)
+    st["extra"] = Payload(marker)
+    torch.save(st, run / CKPT_NAME)
+    _live(marker, lambda: torch.load(run / CKPT_NAME, weights_only=False))
+    before = (run / CKPT_NAME).read_bytes()
+    argv = {"mesh": ["mesh", str(run), "--resolution", "16"], "render": ["render", str(run)],
+            "eval": ["eval", str(run)],
+            "resume": ["train", str(small_scene), "--out", str(run), "--resume"] + SMALL_RUN}[verb]
+    assert main(argv + ["--device", "cpu"]) == 2
+    _one_line_error(capsys, CKPT_NAME, "refused")
+    assert not marker.exists()
+    assert (run / CKPT_NAME).read_bytes() == before and (run / "mesh.ply").read_text() == "earlier result\n"
+
+

@@ -16,12 +16,10 @@ from fastneus.config import Config, config_from_dict, save_config
 from fastneus.errors import FastneusError
 from fastneus.field.model import SDFField
 from fastneus.field.renderer import render_rays
-from fastneus.io import atomic_write
 from fastneus.kernels.occupancy import OccupancyGrid
+from fastneus.train.checkpoint import CKPT_NAME, load_checkpoint, restore, save_checkpoint  # noqa: F401 (re-export)
 from fastneus.train.guard import finite_step
 from fastneus.sampling import RayBank, build_projection
-
-CKPT_NAME = "checkpoint.pt"
 
 
 def resolve_masks(scene, frames: list[int], cfg: Config) -> tuple[bool, str]:
@@ -320,9 +318,7 @@ class Trainer:
 
     def save(self) -> Path:
         """Write the checkpoint atomically (temp file + rename): a crash keeps the previous one."""
-        path = self.out / CKPT_NAME
-        atomic_write(path, lambda tmp: torch.save(self.state(), tmp))
-        return path
+        return save_checkpoint(self.state(), self.out / CKPT_NAME)
 
     def load_state(self, st: dict, with_optimizer: bool = True) -> None:
         self.field.load_state_dict(st["field"])
@@ -342,21 +338,10 @@ class Trainer:
             self.gen.set_state(st["gen"])
 
 
-def load_checkpoint(run: Path, map_location="cpu") -> dict:
-    """Read a run's checkpoint; one clear error if it is missing or unreadable."""
-    path = Path(run) / CKPT_NAME
-    if not path.is_file():
-        raise FastneusError("no checkpoint in this run folder (train first)", file=str(path))
-    try:
-        return torch.load(path, map_location=map_location, weights_only=False)
-    except Exception as e:  # noqa: BLE001 - a corrupt file must not become a traceback
-        raise FastneusError(f"unreadable checkpoint: {type(e).__name__}: {e}", file=str(path)) from None
-
-
 def trainer_from_run(scene, run: Path, device: str, cfg: Config | None = None) -> Trainer:
     """Rebuild a trainer (field, grid, illumination) from a run folder's checkpoint."""
     st = load_checkpoint(run, map_location=device)
     cfg = cfg or config_from_dict(st["config"], str(Path(run) / CKPT_NAME))
     tr = Trainer(scene, cfg, Path(run), device)
-    tr.load_state(st)
+    restore(tr, st, Path(run) / CKPT_NAME)
     return tr
