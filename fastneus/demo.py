@@ -23,10 +23,12 @@ def run_demo(out: Path, device: str, overrides: list[str] | None = None, console
 
     from fastneus.config import load_config
     from fastneus.data import Scene
+    from fastneus.io import check_out_dir
     from fastneus.pipeline import train_scene
     from fastneus.synth import synthesize
 
     con = console or Console()
+    check_out_dir(out)
     kind = "cuda" if device.startswith("cuda") else "cpu"
     s = DEMO_SETTINGS[kind]
     scene_dir = out / "scene"
