@@ -59,21 +59,25 @@ def finish_run(trainer, console=None, eval_frames: list[int] | None = None, mesh
 
 
 def train_scene(scene, cfg: Config, out: Path, device: str, console=None, resume: bool = False,
-                finish: bool = True) -> tuple[object, dict]:
+                finish: bool = True, overwrite: bool = False) -> tuple[object, dict]:
     """Train on ``scene`` into run folder ``out``; then mesh/render/evaluate/report.
 
     Returns:
         (trainer, metrics) — metrics empty when ``finish`` is False.
     """
     from fastneus.train.checkpoint import CKPT_NAME, load_checkpoint, restore
+    from fastneus.train.runfolder import check_run_folder, clear_run_folder
     from fastneus.train.trainer import Trainer
 
     out = Path(out)
+    check_run_folder(out, resume=resume, overwrite=overwrite)
     trainer = Trainer(scene, cfg, out, device, console)
     if resume:
         if not (out / CKPT_NAME).is_file():
             raise FastneusError("--resume given but the run folder has no checkpoint", file=str(out / CKPT_NAME))
         restore(trainer, load_checkpoint(out, map_location=device), out / CKPT_NAME)
+    else:
+        clear_run_folder(out)  # inputs are valid by now: an earlier run is replaced, not mixed in
     if console is not None:
         console.print(trainer.masks_note)
         console.print(trainer.bg_note)

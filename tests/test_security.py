@@ -202,3 +202,28 @@ def test_malicious_checkpoint_does_not_run(small_run, small_scene, tmp_path, cap
     assert (run / CKPT_NAME).read_bytes() == before and (run / "mesh.ply").read_text() == "earlier result\n"
 
 
+# --------------------------------------------------------------------------- run folders
+def test_finished_run_is_not_overwritten(small_scene, tmp_path, capsys):
+    run = tmp_path / "run"
+    assert main(["train", str(small_scene), "--out", str(run), "--device", "cpu"] + SMALL_RUN) == 0
+    capsys.readouterr()
+    metrics = (run / "metrics.json").read_bytes()
+    assert main(["train", str(small_scene), "--out", str(run), "--device", "cpu"] + SMALL_RUN) == 2
+    _one_line_error(capsys, str(run), "--overwrite", "finished run")
+    assert (run / "metrics.json").read_bytes() == metrics
+    assert main(["train", str(small_scene), "--out", str(run), "--device", "cpu", "--overwrite", "--resume"]) == 2
+    _one_line_error(capsys, "--overwrite")
+    # --overwrite starts again: the old log is replaced, not appended to
+    assert main(["train", str(small_scene), "--out", str(run), "--device", "cpu", "--overwrite"] + SMALL_RUN) == 0
+    log = [json.loads(x) for x in (run / "log.jsonl").read_text().splitlines()]
+    assert [r["step"] for r in log] == sorted({r["step"] for r in log})
+    (run / "metrics.json").unlink()  # an unfinished run (checkpoint only) is refused too
+    assert main(["train", str(small_scene), "--out", str(run), "--device", "cpu"] + SMALL_RUN) == 2
+    _one_line_error(capsys, "unfinished run", "--resume")
+    other = tmp_path / "docs"
+    other.mkdir()
+    (other / "notes.txt").write_text("mine")
+    assert main(["train", str(small_scene), "--out", str(other), "--device", "cpu"] + SMALL_RUN) == 2
+    _one_line_error(capsys, "not a fastneus run", "notes.txt")
+
+
