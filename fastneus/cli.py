@@ -84,8 +84,8 @@ def main(argv: list[str] | None = None) -> int:
     except FastneusError as e:
         print(f"fastneus {args.verb}: error: {e}", file=sys.stderr)
         return 2
-    except KeyboardInterrupt:
-        print(f"fastneus {args.verb}: interrupted", file=sys.stderr)
+    except KeyboardInterrupt as e:  # training turns Ctrl-C into one carrying where it saved
+        print(f"fastneus {args.verb}: interrupted" + (f": {e}" if str(e) else ""), file=sys.stderr)
         return 130
     except OSError as e:  # the environment (permissions, disk full, a file in the way), not a bug
         where = ": ".join(str(x) for x in (e.filename, e.filename2) if x)

@@ -62,10 +62,14 @@ def train_scene(scene, cfg: Config, out: Path, device: str, console=None, resume
                 finish: bool = True, overwrite: bool = False) -> tuple[object, dict]:
     """Train on ``scene`` into run folder ``out``; then mesh/render/evaluate/report.
 
+    A folder that already holds a run is refused unless ``resume`` or ``overwrite``;
+    Ctrl-C / SIGTERM during training saves a checkpoint and raises ``RunInterrupted``.
+
     Returns:
         (trainer, metrics) — metrics empty when ``finish`` is False.
     """
     from fastneus.train.checkpoint import CKPT_NAME, load_checkpoint, restore
+    from fastneus.train.interrupt import stop_on_signal
     from fastneus.train.runfolder import check_run_folder, clear_run_folder
     from fastneus.train.trainer import Trainer
 
@@ -85,7 +89,8 @@ def train_scene(scene, cfg: Config, out: Path, device: str, console=None, resume
         console.print(f"run length: {length}; every schedule is a fraction of it")
     atomic_write_json(out / "run.json", {"scene": str(scene.root), "device": str(device), "preset": cfg.preset,
                                          "masks": trainer.masks_note, "background_prior": trainer.bg_note})
-    last = trainer.fit()
+    with stop_on_signal(trainer, out):
+        last = trainer.fit()
     if console is not None and last:
         console.print(f"trained {trainer.step} steps in {trainer.elapsed:.1f}s: loss {last['loss']:.4f}, "
                       f"PSNR {last['psnr']:.2f} dB, i_r {last['i_r']:.4f}, i_b {last['i_b']:.4f}")

@@ -227,3 +227,38 @@ def test_finished_run_is_not_overwritten(small_scene, tmp_path, capsys):
     _one_line_error(capsys, "not a fastneus run", "notes.txt")
 
 
+# --------------------------------------------------------------------------- Ctrl-C
+def test_ctrl_c_saves_a_checkpoint_that_resume_continues(small_scene, tmp_path, capsys):
+    from fastneus.train.checkpoint import load_checkpoint
+
+    run = tmp_path / "run"
+    env = dict(os.environ, PYTHONUNBUFFERED="1")
+    cmd = [sys.executable, "-m", "fastneus.cli", "train", str(small_scene), "--out", str(run), "--device", "cpu",
+           *SMALL_RUN, "steps=100000", "save_every=100000"]
+    p = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, env=env)
+    try:
+        t0 = time.time()
+        while not ((run / "log.jsonl").is_file() and (run / "log.jsonl").read_text().count("\n") >= 3):
+            assert p.poll() is None and time.time() - t0 < 120, "training did not start"
+            time.sleep(0.1)
+        p.send_signal(signal.SIGINT)
+        _, err = p.communicate(timeout=60)
+    finally:
+        if p.poll() is None:
+            p.kill()
+    assert p.returncode == 130, err
+    line = err.strip()
+    assert len(line.splitlines()) == 1 and "Traceback" not in line, err
+    assert "interrupted: SIGINT at step" in line and "--resume" in line and "checkpoint.pt" in line
+    step = load_checkpoint(run)["step"]
+    assert step >= 3 and f"step {step};" in line
+    assert not (run / "metrics.json").exists()
+    # a fresh start there is refused; --resume continues from the saved step and finishes the run
+    assert main(["train", str(small_scene), "--out", str(run), "--device", "cpu"] + SMALL_RUN) == 2
+    capsys.readouterr()
+    assert main(["train", str(small_scene), "--out", str(run), "--device", "cpu", "--resume",
+                 *SMALL_RUN, f"steps={step + 3}"]) == 0
+    assert load_checkpoint(run)["step"] == step + 3
+    assert json.loads((run / "metrics.json").read_text())["steps"] == step + 3
+
+

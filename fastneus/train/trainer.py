@@ -123,6 +123,7 @@ class Trainer:
         self._grid_open = False     # grid forced fully occupied (warm-up) since the last update
         self.gen = torch.Generator(device=self.device)
         self.gen.manual_seed(cfg.seed)
+        self.stop_signal: str | None = None  # set by interrupt.stop_on_signal: stop after this step
 
     # ------------------------------------------------------------------ helpers
     def illumination(self) -> tuple[torch.Tensor, torch.Tensor]:
@@ -141,6 +142,8 @@ class Trainer:
         return min(1.0, p)
 
     def finished(self) -> bool:
+        if self.stop_signal is not None:
+            return True
         if self.cfg.time_budget > 0:
             return self.elapsed >= self.cfg.time_budget
         return self.step >= self.cfg.steps
