@@ -262,3 +262,23 @@ def test_ctrl_c_saves_a_checkpoint_that_resume_continues(small_scene, tmp_path, 
     assert json.loads((run / "metrics.json").read_text())["steps"] == step + 3
 
 
+# --------------------------------------------------------------------------- masks
+def test_empty_masks(small_scene, tmp_path):
+    import cv2
+
+    from fastneus.config import load_config
+    from fastneus.data import Scene
+    from fastneus.train.trainer import Trainer
+
+    scene_dir = tmp_path / "scene"
+    shutil.copytree(small_scene, scene_dir)
+    sc = Scene.load(scene_dir)
+    blank = np.zeros((24, 24), np.uint8)
+    cv2.imwrite(str(sc.path(sc.frames[1].mask)), blank)
+    cfg = load_config("cpu-quick", SMALL_RUN)
+    tr = Trainer(sc, cfg, tmp_path / "r1", "cpu")
+    assert tr.masks_used and "warning: empty (all-zero) mask" in tr.masks_note and "001" in tr.masks_note
+    for f in sc.frames:
+        cv2.imwrite(str(sc.path(f.mask)), blank)
+    with pytest.raises(FastneusError, match=r"frames\[0\]\.mask: mask is empty"):
+        Trainer(sc, cfg, tmp_path / "r2", "cpu")

@@ -90,6 +90,8 @@ class Trainer:
         self.bank = RayBank(scene, self.frames, self.device, load_masks=self.masks_used,
                             brightness_cdf=cfg.bright_fraction > 0,
                             background=cfg.background if want_bg else None, bg_tolerance=cfg.bg_tolerance)
+        if self.bank.empty_masks:  # all-zero masks: the object is outside those views (or a wrong file)
+            self.masks_note += f"; warning: empty (all-zero) mask {', '.join(self.bank.empty_masks)}"
         self.bg_used, self.bg_note = resolve_bg_prior(cfg, self.masks_used, self.bank.bg_fraction)
         self.proj = build_projection(scene, self.frames, self.device)
         self.field = SDFField(cfg, self.device)
