@@ -22,7 +22,8 @@ from typing import Any
 
 import numpy as np
 
-from fastneus.data.scene import FORMAT, VERSION, Scene, check_pose, image_size, rigid_inverse
+from fastneus.data.scene import (FORMAT, VERSION, Scene, check_faces_bounds, check_intrinsics, check_pose, image_size,
+                                 rigid_inverse)
 from fastneus.errors import FastneusError
 from fastneus.formats.safe_npz import npz_array, open_npz, read_number_dict
 
@@ -127,7 +128,7 @@ def read_activeneus(path: str | os.PathLike) -> Scene:
     # per-frame matrices
     Ks, poses, Ss, PKs, CPs = [], [], [], [], []
     for i in range(n):
-        Ks.append(_get(npz, f"cam_mat_{i}", (4, 4), npz_path)[:3, :3])
+        Ks.append(check_intrinsics(_get(npz, f"cam_mat_{i}", (4, 4), npz_path)[:3, :3], npz_path, f"cam_mat_{i}"))
         poses.append(check_pose(_get(npz, f"cam_pose_{i}", (4, 4), npz_path), npz_path, f"cam_pose_{i}"))
         Ss.append(_get(npz, f"scale_mat_{i}", (4, 4), npz_path))
         has_proj = f"proj_mat_{i}" in npz.files or f"cam_proj_pose_{i}" in npz.files
@@ -135,6 +136,8 @@ def read_activeneus(path: str | os.PathLike) -> Scene:
         CPs.append(_get(npz, f"cam_proj_pose_{i}", (-1, 4, 4), npz_path) if has_proj else np.zeros((0, 4, 4)))
         for k in range(len(CPs[i])):
             check_pose(CPs[i][k], npz_path, f"cam_proj_pose_{i}[{k}]")
+        for k in range(len(PKs[i])):
+            check_intrinsics(PKs[i][k][:3, :3], npz_path, f"proj_mat_{i}[{k}]")
         if len(PKs[i]) != len(CPs[i]):
             raise FastneusError(f"{len(CPs[i])} projector poses but proj_mat_{i} has {len(PKs[i])}",
                                 file=npz_path, field=f"cam_proj_pose_{i}")
@@ -153,6 +156,13 @@ def read_activeneus(path: str | os.PathLike) -> Scene:
         if not np.allclose(Ss[i], S, rtol=1e-6, atol=1e-9):
             raise FastneusError("differs from scale_mat_0; all frames must share one normalisation",
                                 file=npz_path, field=f"scale_mat_{i}")
+    # named by npz key here (Scene validation would name scene.json fields)
+    for i in range(n):
+        c2w = rigid_inverse(poses[i])
+        check_faces_bounds(c2w, S[:3, 3], s, "camera", npz_path, f"cam_pose_{i}")
+        for k in range(len(CPs[i])):
+            check_faces_bounds(c2w @ rigid_inverse(CPs[i][k]), S[:3, 3], s, "projector", npz_path,
+                               f"cam_proj_pose_{i}[{k}]")
 
     # pattern files: frame i uses group i; a single group (or identical groups) is shared
     if P and not pat_groups:
