@@ -28,6 +28,9 @@ def open_run(run: str, device: str, scene: str | None = None):
                                 file=str(meta), field="scene") from None
         if not isinstance(scene, str) or not scene:
             raise FastneusError(f"expected the scene folder's path, got {scene!r}", file=str(meta), field="scene")
+        if not Path(scene).exists():
+            raise FastneusError(f"the run's scene {scene} is gone (moved?); pass --scene DIR", file=str(meta),
+                                field="scene")
     sc = load_scene(scene)
     return sc, trainer_from_run(sc, rp, device)
 

@@ -54,9 +54,10 @@ def _read_nodes(paths: Sequence[Path]) -> dict[str, tuple[Path, object]]:
             raise FastneusError("calibration file not found", file=p)
         try:
             fs = cv2.FileStorage(str(p), cv2.FILE_STORAGE_READ)
-        except cv2.error as e:
-            raise FastneusError(f"cannot parse as OpenCV YAML/XML: {str(e).strip().splitlines()[-1]}",
-                                file=p) from None
+        except (cv2.error, SystemError) as e:  # some parse errors surface as SystemError (cv2.error as cause)
+            msg = str(e.__cause__ or e).strip().splitlines()[-1]
+            msg = msg.split(" in function '", 1)[-1].rstrip("'")  # keep "file(line): what", drop the C++ source path
+            raise FastneusError(f"cannot parse as OpenCV YAML/XML: {msg}", file=p) from None
         if not fs.isOpened():
             raise FastneusError("cannot open as OpenCV YAML/XML", file=p)
         root = fs.root()

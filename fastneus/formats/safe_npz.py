@@ -37,11 +37,16 @@ def open_npz(path: Path):
         raises (use :func:`read_number_dict` for ``illumination_params``).
     """
     try:
+        with open(path, "rb") as fh:
+            magic = fh.read(4)
+    except OSError as e:
+        raise FastneusError(f"cannot read: {e.strerror}", file=path) from None
+    if magic not in (b"PK\x03\x04", b"PK\x05\x06"):  # np.load would try to unpickle a non-zip file
+        raise FastneusError("not an npz archive (expected a zip of .npy arrays, as np.savez writes)", file=path)
+    try:
         npz = np.load(path, allow_pickle=False)
     except Exception as e:  # noqa: BLE001 - corrupt or foreign file: one line, not a trace
         raise FastneusError(f"unreadable npz: {type(e).__name__}: {e}".splitlines()[0], file=path) from None
-    if not hasattr(npz, "files"):  # a bare .npy renamed to .npz
-        raise FastneusError("not an npz archive (a single array)", file=path)
     return npz
 
 

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import numbers
 import pickle
+import re
 from pathlib import Path
 from typing import Any
 
@@ -71,12 +72,13 @@ def load_checkpoint(run: Path, map_location="cpu") -> dict:
         st = torch.load(path, map_location=map_location, weights_only=True)
     except pickle.UnpicklingError as e:
         # weights_only refuses globals other than torch's tensor rebuilders; say which, in one line
-        what = next((ln.strip() for ln in str(e).splitlines() if "GLOBAL" in ln or "Unsupported" in ln), "")
+        what = re.search(r"GLOBAL (\S+)", str(e))
         raise FastneusError("refused to load: it holds Python objects other than tensors, numbers and "
                             "strings, which could run code (fastneus never unpickles them)"
-                            + (f" [{what[:120]}]" if what else ""), file=str(path)) from None
+                            + (f"; it references {what.group(1)}" if what else ""), file=str(path)) from None
     except Exception as e:  # noqa: BLE001 - truncated or foreign file: one line, not a trace
-        raise FastneusError(f"unreadable checkpoint: {type(e).__name__}: {e}".splitlines()[0],
+        first = (str(e).strip().splitlines() or [""])[0].split(". ")[0]
+        raise FastneusError(f"unreadable checkpoint (truncated, or not a torch file): {type(e).__name__}: {first}",
                             file=str(path)) from None
     if not isinstance(st, dict):
         raise FastneusError(f"not a fastneus checkpoint (holds a {type(st).__name__})", file=str(path))
@@ -97,6 +99,8 @@ def restore(trainer, st: dict, path: Path, with_optimizer: bool = True) -> None:
     try:
         trainer.load_state(st, with_optimizer=with_optimizer)
     except (KeyError, RuntimeError, ValueError, TypeError, AttributeError, IndexError) as e:
-        msg = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+        lines = [ln.strip() for ln in str(e).splitlines() if ln.strip()] or [type(e).__name__]
+        # torch lists the mismatches after a header line: show the first one
+        msg = next((ln for ln in lines if "mismatch" in ln or "key" in ln.lower()), lines[0])
         raise FastneusError(f"does not fit this run's model/config ({type(e).__name__}: {msg[:200]})",
                             file=str(path)) from None
