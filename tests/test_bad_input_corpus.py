@@ -690,6 +690,21 @@ def _(c):
     return ["patterns", "--kind", "grid", "--size", "32x16", "--out", str(f)], f, ["afile", "--out"]
 
 
+@case("cli-synth-out-is-a-file")
+def _(c):
+    f = c.tmp / "afile"
+    f.write_text("earlier")
+    return ["synth", "--shape", "sphere", "--views", "1", "--size", "8x8", "--device", "cpu", "--out", str(f)], f, \
+        ["afile", "--out", "not a folder"]
+
+
+@case("cli-demo-out-is-a-file")
+def _(c):
+    f = c.tmp / "afile"
+    f.write_text("earlier")
+    return ["demo", "--device", "cpu", "--out", str(f)], f, ["afile", "--out", "not a folder"]
+
+
 @case("cli-synth-bad-int")
 def _(c):
     out = c.scene_out()
