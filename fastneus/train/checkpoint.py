@@ -8,7 +8,6 @@ torch's restricted unpickler. Every failure is one line naming the file and entr
 """
 from __future__ import annotations
 
-import numbers
 import pickle
 import re
 from pathlib import Path
@@ -38,20 +37,20 @@ def plain(obj: Any, where: str = "state") -> Any:
         return obj
     if isinstance(obj, np.ndarray) and not obj.dtype.hasobject:
         return torch.from_numpy(np.ascontiguousarray(obj))
-    if isinstance(obj, np.generic) and isinstance(obj.item(), (bool, numbers.Number)):
+    if isinstance(obj, np.generic) and isinstance(obj.item(), (bool, int, float)):
         return obj.item()
     if isinstance(obj, dict):
-        return {k: plain(v, f"{where}.{k}") for k, v in obj.items() if _key_ok(k, where)}
+        out = {}
+        for k, v in obj.items():
+            if isinstance(k, bool) or not isinstance(k, (str, int)):
+                raise TypeError(f"checkpoint entry {where} has a key of type {type(k).__name__}")
+            out[k] = plain(v, f"{where}.{k}")
+        return out
     if isinstance(obj, (list, tuple)):
-        return type(obj)(plain(v, f"{where}[{i}]") for i, v in enumerate(obj))
+        items = [plain(v, f"{where}[{i}]") for i, v in enumerate(obj)]
+        return tuple(items) if isinstance(obj, tuple) else items  # namedtuples become plain tuples
     raise TypeError(f"checkpoint entry {where} is a {type(obj).__name__}; only tensors, numbers, strings "
                     f"and plain containers are saved")
-
-
-def _key_ok(k: Any, where: str) -> bool:
-    if isinstance(k, (str, int)) and not isinstance(k, bool):
-        return True
-    raise TypeError(f"checkpoint entry {where} has a key of type {type(k).__name__}")
 
 
 def save_checkpoint(state: dict, path: Path) -> Path:
