@@ -42,8 +42,15 @@ def add_device_arg(p: argparse.ArgumentParser) -> None:
     p.add_argument("--device", default=None, help="cpu or cuda (default: cuda when available, else cpu)")
 
 
+class _Parser(argparse.ArgumentParser):
+    """argparse with the one-line error convention (usage stays in ``--help``)."""
+
+    def error(self, message: str):
+        self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="fastneus",
         description="Fast ActiveNeuS: reconstruct surfaces from images lit by calibrated projectors.",
     )
@@ -77,9 +84,13 @@ def main(argv: list[str] | None = None) -> int:
     except FastneusError as e:
         print(f"fastneus {args.verb}: error: {e}", file=sys.stderr)
         return 2
-    except KeyboardInterrupt:
-        print(f"fastneus {args.verb}: interrupted", file=sys.stderr)
+    except KeyboardInterrupt as e:  # training turns Ctrl-C into one carrying where it saved
+        print(f"fastneus {args.verb}: interrupted" + (f": {e}" if str(e) else ""), file=sys.stderr)
         return 130
+    except OSError as e:  # the environment (permissions, disk full, a file in the way), not a bug
+        where = ": ".join(str(x) for x in (e.filename, e.filename2) if x)
+        print(f"fastneus {args.verb}: error: {where + ': ' if where else ''}{e.strerror or e}", file=sys.stderr)
+        return 2
     except Exception as e:  # noqa: BLE001 - last resort: one line unless debugging
         if os.environ.get("FASTNEUS_DEBUG"):
             raise

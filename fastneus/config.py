@@ -198,6 +198,10 @@ def apply(cfg: Config, updates: dict[str, Any], source: str) -> Config:
 
 
 def validate(cfg: Config, source: str = "config") -> None:
+    for f in fields(cfg):  # .nan / .inf parse as floats; a NaN weight would silently skip every step
+        v = getattr(cfg, f.name)
+        if isinstance(v, float) and not math.isfinite(v):
+            raise FastneusError(f"must be a finite number, got {v!r}", file=source, field=f.name)
     for k, choices in _CHOICES.items():
         if getattr(cfg, k) not in choices:
             raise FastneusError(f"must be one of {', '.join(choices)}, got {getattr(cfg, k)!r}", file=source, field=k)

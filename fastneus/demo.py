@@ -23,10 +23,12 @@ def run_demo(out: Path, device: str, overrides: list[str] | None = None, console
 
     from fastneus.config import load_config
     from fastneus.data import Scene
+    from fastneus.io import check_out_dir
     from fastneus.pipeline import train_scene
     from fastneus.synth import synthesize
 
     con = console or Console()
+    check_out_dir(out)
     kind = "cuda" if device.startswith("cuda") else "cpu"
     s = DEMO_SETTINGS[kind]
     scene_dir = out / "scene"
@@ -42,7 +44,10 @@ def run_demo(out: Path, device: str, overrides: list[str] | None = None, console
         con.print(f"    {scene_dir} ({time.perf_counter() - t:.1f}s); look at {scene_dir / 'contact_sheet.png'}")
     cfg = load_config(s["preset"], overrides)
     con.print(f"[bold]2/3 reconstruct[/bold]: preset {cfg.preset}, {cfg.steps} steps on {device}")
-    _, metrics = train_scene(scene, cfg, out / "run", device, console=con)
+    if (out / "run").is_dir() and any((out / "run").iterdir()):
+        con.print(f"    replacing the previous demo run in {out / 'run'}")
+    # the demo owns its run folder: running it again replaces the previous demo run
+    _, metrics = train_scene(scene, cfg, out / "run", device, console=con, overwrite=True)
     con.print("[bold]3/3 results[/bold]")
     for k in ("chamfer_gt2rec_mm", "chamfer_gt2rec_filtered_mm", "fscore", "psnr_pattern", "psnr_texture",
               "depth_mae_mm", "i_r", "i_b", "train_seconds"):

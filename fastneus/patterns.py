@@ -260,8 +260,9 @@ def _run(args) -> int:
     w, h = parse_size(args.size)
     ims = make_pattern(args.kind, w, h, seed=args.seed, count=args.count, line_width=args.line_width,
                        inverse=args.inverse or None)
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
+    from fastneus.io import make_out_dir
+
+    out = make_out_dir(args.out)
     for k, im in enumerate(ims):
         write_png(out / f"{args.kind}_{k:02d}.png", im)
     print(f"wrote {len(ims)} {args.kind} pattern{'s' if len(ims) != 1 else ''} "

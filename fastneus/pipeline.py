@@ -59,20 +59,29 @@ def finish_run(trainer, console=None, eval_frames: list[int] | None = None, mesh
 
 
 def train_scene(scene, cfg: Config, out: Path, device: str, console=None, resume: bool = False,
-                finish: bool = True) -> tuple[object, dict]:
+                finish: bool = True, overwrite: bool = False) -> tuple[object, dict]:
     """Train on ``scene`` into run folder ``out``; then mesh/render/evaluate/report.
+
+    A folder that already holds a run is refused unless ``resume`` or ``overwrite``;
+    Ctrl-C / SIGTERM during training saves a checkpoint and raises ``RunInterrupted``.
 
     Returns:
         (trainer, metrics) — metrics empty when ``finish`` is False.
     """
-    from fastneus.train.trainer import CKPT_NAME, Trainer, load_checkpoint
+    from fastneus.train.checkpoint import CKPT_NAME, load_checkpoint, restore
+    from fastneus.train.interrupt import stop_on_signal
+    from fastneus.train.runfolder import check_run_folder, clear_run_folder
+    from fastneus.train.trainer import Trainer
 
     out = Path(out)
+    check_run_folder(out, resume=resume, overwrite=overwrite)
     trainer = Trainer(scene, cfg, out, device, console)
     if resume:
         if not (out / CKPT_NAME).is_file():
             raise FastneusError("--resume given but the run folder has no checkpoint", file=str(out / CKPT_NAME))
-        trainer.load_state(load_checkpoint(out, map_location=device))
+        restore(trainer, load_checkpoint(out, map_location=device), out / CKPT_NAME)
+    else:
+        clear_run_folder(out)  # inputs are valid by now: an earlier run is replaced, not mixed in
     if console is not None:
         console.print(trainer.masks_note)
         console.print(trainer.bg_note)
@@ -80,7 +89,8 @@ def train_scene(scene, cfg: Config, out: Path, device: str, console=None, resume
         console.print(f"run length: {length}; every schedule is a fraction of it")
     atomic_write_json(out / "run.json", {"scene": str(scene.root), "device": str(device), "preset": cfg.preset,
                                          "masks": trainer.masks_note, "background_prior": trainer.bg_note})
-    last = trainer.fit()
+    with stop_on_signal(trainer, out):
+        last = trainer.fit()
     if console is not None and last:
         console.print(f"trained {trainer.step} steps in {trainer.elapsed:.1f}s: loss {last['loss']:.4f}, "
                       f"PSNR {last['psnr']:.2f} dB, i_r {last['i_r']:.4f}, i_b {last['i_b']:.4f}")

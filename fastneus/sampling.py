@@ -12,6 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from fastneus.errors import FastneusError
 from fastneus.kernels.render import PatternStore
 
 
@@ -100,6 +101,7 @@ class RayBank:
                 m = scene.mask(i)
                 masks.append(None if m is None else torch.from_numpy((np.clip(m, 0, 1) * 255).astype(np.uint8).reshape(-1)))
         self.has_masks = load_masks and all(m is not None for m in masks)
+        self.empty_masks = self._empty_masks(scene, masks) if self.has_masks else []
         self.rgb = torch.cat(chunks).to(self.device)                          # [sum HW, 3] uint8
         self.mask = torch.cat(masks).to(self.device) if self.has_masks else None  # [sum HW] uint8
         wh = torch.tensor(sizes, dtype=torch.int64)
@@ -120,6 +122,20 @@ class RayBank:
             # brightness-proportional pixel distribution (float64: millions of pixels)
             w = self.rgb.max(dim=1).values.double() / 255.0 + 1e-3
             self.cdf = torch.cumsum(w, 0)
+
+    def _empty_masks(self, scene, masks: list) -> list[str]:
+        """Mask files that are all zero. All of them empty is an error (nothing to reconstruct:
+        a wrong folder or an inverted export); some empty is allowed (the object can leave a view).
+
+        Returns:
+            The empty masks' paths, for a warning.
+        """
+        empty = [a for a, m in enumerate(masks) if not bool(m.any())]
+        if empty and len(empty) == len(masks):
+            i = self.frames[0]
+            raise FastneusError("mask is empty (all zero), and so is every other training mask: no pixel "
+                                "shows the object", file=scene.path(scene.frames[i].mask), field=f"frames[{i}].mask")
+        return [str(scene.path(scene.frames[self.frames[a]].mask)) for a in empty]
 
     def rays(self, fidx: torch.Tensor, u: torch.Tensor, v: torch.Tensor):
         """Rays through pixel centres.

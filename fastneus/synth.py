@@ -136,6 +136,9 @@ class Albedo:
 # --------------------------------------------------------------------------- output folder
 def _prepare_out(out: Path) -> None:
     """Create ``out``; clear a previous synth output there, refuse to mix with other files."""
+    from .io import check_out_dir
+
+    check_out_dir(out)
     if out.exists() and any(out.iterdir()):
         sj = out / "scene.json"
         ours = False

@@ -13,4 +13,4 @@ from fastneus.synth import synthesize
 synthesize('/tmp/dark20', shape='toy', views=20, size=(800,800), pattern='crosslaser', illum='dark', seed=0, device='cuda', progress=False)
 print('synth 20x800x800 dark on cuda: %.1fs' % (time.time()-t))
 " 2>&1 | grep -v Warp
-python3 -m fastneus.cli train /tmp/dark20 --device cuda --out $out/run steps=$steps mesh_resolution=384 2>&1 | grep -v "Warp" | tail -12
+python3 -m fastneus.cli train /tmp/dark20 --device cuda --out $out/run --overwrite steps=$steps mesh_resolution=384 2>&1 | grep -v "Warp" | tail -12

@@ -73,7 +73,7 @@ def run_cell(scene, device: str, budget: float, masks: str, extra: list[str], ou
     ov = [f"time_budget={budget}"] + (["masks=off"] if masks == "off" else []) + list(extra)
     cfg = load_config(preset, ov)
     t = time.perf_counter()
-    trainer, m = train_scene(scene, cfg, out, device)
+    trainer, m = train_scene(scene, cfg, out, device, overwrite=True)  # a re-run replaces its cell
     row = {k: m.get(k) for k in METRICS + ["steps", "train_seconds", "i_r", "i_b", "masks_used", "bg_prior_used"]}
     row["wall_s"] = round(time.perf_counter() - t, 1)
     return row

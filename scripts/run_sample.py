@@ -162,7 +162,7 @@ def main(argv=None) -> int:
         cfg.frames = train
         console.rule(f"{v}: preset {preset}, {cfg.steps} steps on {device}")
         t = time.perf_counter()
-        trainer, _ = train_scene(scene, cfg, out / v, device, console=console, finish=False)
+        trainer, _ = train_scene(scene, cfg, out / v, device, console=console, finish=False, overwrite=True)
         train_s = time.perf_counter() - t
         t = time.perf_counter()
         per, renders = evaluate(trainer, scene, held)

@@ -136,11 +136,26 @@ def check_pose(T: Any, file, fld: str) -> np.ndarray:
     return T
 
 
-def _intrinsics(K: Any, file, fld: str) -> np.ndarray:
+def check_intrinsics(K: Any, file, fld: str) -> np.ndarray:
+    """Validate a 3x3 pinhole K (finite, fx, fy > 0, last row 0 0 1)."""
     K = _matrix(K, (3, 3), file, fld)
     if K[0, 0] <= 0 or K[1, 1] <= 0 or not np.allclose(K[2], [0, 0, 1]):
         raise _err("must be [[fx, s, cx], [0, fy, cy], [0, 0, 1]] with fx, fy > 0", file, fld)
     return K
+
+
+def check_faces_bounds(dev_to_world: np.ndarray, center, radius: float, what: str, file, fld: str) -> None:
+    """Refuse a camera or projector that has the whole region of interest behind it.
+
+    Such a device can see (or light) nothing of the scene: usually a world->device pose given
+    where device->world is expected, a projector pose inverted, or wrong bounds.
+    """
+    x = np.append(np.asarray(center, dtype=np.float64), 1.0)
+    z = float((rigid_inverse(dev_to_world) @ x)[2])
+    if z <= -radius:
+        raise _err(f"the scene (bounds centre {np.round(x[:3], 4).tolist()}, radius {radius:g}) lies entirely "
+                   f"behind this {what} (depth {z:.3g}); is the pose inverted (world->{what} instead of "
+                   f"{what}->world), or are the bounds wrong?", file, fld)
 
 
 def _int(value: Any, file, fld: str, minimum: int = 1) -> int:
@@ -173,34 +188,64 @@ def _req(d: dict, key: str, file, prefix: str) -> Any:
     return d[key]
 
 
-def image_size(path: str | os.PathLike) -> tuple[int, int] | None:
-    """(width, height) of an image, reading only the header for PNG; None if unreadable."""
+# PNG colour type -> channels as decoded (palette images decode to colour)
+_PNG_CHANNELS = {0: 1, 2: 3, 3: 3, 4: 2, 6: 4}
+
+
+def image_info(path: str | os.PathLike) -> tuple[int, int, int, int] | None:
+    """(width, height, channels, bits per channel) of an image; None if unreadable.
+
+    PNG is read from its header only; other formats are decoded once.
+    """
     path = str(path)
     try:
         with open(path, "rb") as f:
-            head = f.read(24)
+            head = f.read(26)
     except OSError:
         return None
-    if len(head) >= 24 and head[:8] == b"\x89PNG\r\n\x1a\n" and head[12:16] == b"IHDR":
+    if len(head) >= 26 and head[:8] == b"\x89PNG\r\n\x1a\n" and head[12:16] == b"IHDR":
         w, h = struct.unpack(">II", head[16:24])
-        return int(w), int(h)
-    import cv2  # other formats: decode once
+        bits = 8 if head[25] == 3 else int(head[24])  # palette: 8-bit colours whatever the index size
+        return int(w), int(h), _PNG_CHANNELS.get(head[25], 0), bits
+    import cv2
 
     im = cv2.imread(path, cv2.IMREAD_UNCHANGED)
     if im is None:
         return None
-    return int(im.shape[1]), int(im.shape[0])
+    return int(im.shape[1]), int(im.shape[0]), 1 if im.ndim == 2 else int(im.shape[2]), 8 * im.dtype.itemsize
 
 
-def _check_image(root: Path, rel: str, size: tuple[int, int] | None, file, fld: str) -> None:
+def image_size(path: str | os.PathLike) -> tuple[int, int] | None:
+    """(width, height) of an image, reading only the header for PNG; None if unreadable."""
+    info = image_info(path)
+    return None if info is None else info[:2]
+
+
+# what each kind of image may be (channels, bits): photos are 8-bit colour as the model sees them;
+# masks use channel 0 (8 or 16 bit); patterns may be grey (white light). Alpha is never dropped silently.
+_IMAGE_KINDS = {"image": ((3,), (8,)), "mask": ((1, 3), (8, 16)), "pattern": ((1, 3), (8,))}
+
+
+def _check_image(root: Path, rel: str, size: tuple[int, int] | None, file, fld: str, kind: str = "image") -> None:
     p = root / rel
     if not p.is_file():
         raise _err(f"file not found: {p}", file, fld)
-    wh = image_size(p)
-    if wh is None:
+    info = image_info(p)
+    if info is None:
         raise _err(f"cannot read image {p}", file, fld)
-    if size is not None and wh != tuple(size):
-        raise _err(f"image {rel} is {wh[0]}x{wh[1]} but should be {size[0]}x{size[1]}", file, fld)
+    w, h, ch, bits = info
+    if size is not None and (w, h) != tuple(size):
+        raise _err(f"image {rel} is {w}x{h} but should be {size[0]}x{size[1]}", file, fld)
+    channels, depths = _IMAGE_KINDS[kind]
+    if ch in (2, 4):
+        raise _err(f"{kind} {rel} has an alpha channel, which fastneus would drop; save it without alpha "
+                   f"(a transparent background belongs in a mask)", file, fld)
+    if ch not in channels:
+        raise _err(f"{kind} {rel} has {ch} channel(s); expected {' or '.join(map(str, channels))}"
+                   + (" (a colour photo; convert grey images to RGB)" if kind == "image" else ""), file, fld)
+    if bits not in depths:
+        raise _err(f"{kind} {rel} is {bits}-bit; expected {' or '.join(map(str, depths))}-bit per channel",
+                   file, fld)
 
 
 def _read_rgb(path: Path, file, fld: str) -> np.ndarray:
@@ -210,6 +255,14 @@ def _read_rgb(path: Path, file, fld: str) -> np.ndarray:
     if im is None:
         raise _err(f"cannot read image {path}", file, fld)
     return np.ascontiguousarray(im[:, :, ::-1])
+
+
+def _read_npy(path: Path, file, fld: str) -> np.ndarray:
+    """A numeric ``.npy`` as float32; never unpickles (ground truth files are untrusted too)."""
+    try:
+        return np.asarray(np.load(path, allow_pickle=False), dtype=np.float32)
+    except Exception as e:  # noqa: BLE001 - corrupt, pickled or non-numeric: one line
+        raise _err(f"cannot read {path}: {e}".splitlines()[0], file, fld) from None
 
 
 def _list(a: np.ndarray | None):
@@ -289,7 +342,7 @@ class Scene:
             c = _dict(c, file, p)
             dist = c.get("dist")
             cameras[cid] = Camera(
-                id=cid, K=_intrinsics(_req(c, "K", file, p), file, f"{p}.K"),
+                id=cid, K=check_intrinsics(_req(c, "K", file, p), file, f"{p}.K"),
                 width=_int(_req(c, "width", file, p), file, f"{p}.width"),
                 height=_int(_req(c, "height", file, p), file, f"{p}.height"),
                 dist=np.zeros(5) if dist is None else _matrix(dist, (5,), file, f"{p}.dist"))
@@ -302,7 +355,7 @@ class Scene:
             pr = _dict(pr, file, p)
             p2c = pr.get("proj_to_cam")
             projectors[pid] = Projector(
-                id=pid, K=_intrinsics(_req(pr, "K", file, p), file, f"{p}.K"),
+                id=pid, K=check_intrinsics(_req(pr, "K", file, p), file, f"{p}.K"),
                 width=_int(_req(pr, "width", file, p), file, f"{p}.width"),
                 height=_int(_req(pr, "height", file, p), file, f"{p}.height"),
                 proj_to_cam=None if p2c is None else check_pose(p2c, file, f"{p}.proj_to_cam"))
@@ -314,7 +367,7 @@ class Scene:
             q = _dict(q, file, p)
             patterns[qid] = Pattern(id=qid, file=_str(_req(q, "file", file, p), file, f"{p}.file"))
             if check_files:
-                _check_image(root, patterns[qid].file, None, file, f"{p}.file")
+                _check_image(root, patterns[qid].file, None, file, f"{p}.file", kind="pattern")
                 pattern_sizes[qid] = image_size(root / patterns[qid].file)
 
         fl = _req(d, "frames", file, "")
@@ -323,6 +376,7 @@ class Scene:
         if not fl:
             raise _err("no frames: a scene needs at least one image", file, "frames")
         frames: list[Frame] = []
+        image_of: dict[str, int] = {}  # resolved image path -> first frame using it
         for i, f in enumerate(fl):
             p = f"frames[{i}]"
             f = _dict(f, file, p)
@@ -330,6 +384,11 @@ class Scene:
             if cam not in cameras:
                 raise _err(f"unknown camera id {cam!r}; known: {sorted(cameras)}", file, f"{p}.camera")
             image = _str(_req(f, "image", file, p), file, f"{p}.image")
+            key = os.path.normpath(root / image)
+            if key in image_of:
+                raise _err(f"duplicate frame: same image {image!r} as frames[{image_of[key]}] (each photo is one "
+                           "frame)", file, f"{p}.image")
+            image_of[key] = i
             c2w = check_pose(_req(f, "cam_to_world", file, p), file, f"{p}.cam_to_world")
             view = _int(f.get("view", i), file, f"{p}.view", minimum=0)
             mask = f.get("mask")
@@ -371,9 +430,17 @@ class Scene:
                 size = (cameras[cam].width, cameras[cam].height)
                 _check_image(root, image, size, file, f"{p}.image")
                 if mask is not None:
-                    _check_image(root, mask, size, file, f"{p}.mask")
+                    _check_image(root, mask, size, file, f"{p}.mask", kind="mask")
             frames.append(Frame(image=image, camera=cam, cam_to_world=c2w, projectors=fps, mask=mask,
                                 view=view, gt=gt))
+            check_faces_bounds(c2w, bounds.center, bounds.radius, "camera", file, f"{p}.cam_to_world")
+            for pid, fp in fps.items():
+                if fp.pattern is None:
+                    continue
+                p2c = projectors[pid].proj_to_cam
+                check_faces_bounds(c2w @ p2c if p2c is not None else fp.proj_to_world, bounds.center, bounds.radius,
+                                   "projector", file, f"projectors.{pid}.proj_to_cam" if p2c is not None
+                                   else f"{p}.projectors.{pid}.proj_to_world")
 
         il = _dict(d.get("illumination", {}), file, "illumination")
         known = il.get("known", False)
@@ -549,8 +616,7 @@ class Scene:
         rel = self.frames[i].gt.get("depth")
         if rel is None:
             return None
-        d = np.load(self.path(rel))
-        return np.asarray(d, dtype=np.float32)
+        return _read_npy(self.path(rel), self.root / "scene.json", f"frames[{i}].gt.depth")
 
     def gt_normal(self, i: int) -> np.ndarray | None:
         """float32 [H, W, 3] ground-truth world normals (zero = background) or None."""
@@ -558,7 +624,7 @@ class Scene:
         if rel is None:
             return None
         if rel.endswith(".npy"):
-            return np.asarray(np.load(self.path(rel)), dtype=np.float32)
+            return _read_npy(self.path(rel), self.root / "scene.json", f"frames[{i}].gt.normal")
         im = _read_rgb(self.path(rel), self.root / "scene.json", f"frames[{i}].gt.normal").astype(np.float32)
         n = im / 255.0 * 2.0 - 1.0
         n[np.all(im == 0, axis=-1)] = 0.0  # black = background

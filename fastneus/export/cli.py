@@ -6,6 +6,7 @@ from pathlib import Path
 
 from fastneus.cli import add_device_arg, resolve_device
 from fastneus.errors import FastneusError
+from fastneus.io import check_out_dir
 
 
 def open_run(run: str, device: str, scene: str | None = None):
@@ -22,15 +23,41 @@ def open_run(run: str, device: str, scene: str | None = None):
             raise FastneusError("run.json missing; pass --scene", file=str(meta))
         try:
             scene = json.loads(meta.read_text())["scene"]
-        except (ValueError, KeyError) as e:
-            raise FastneusError(f"unreadable run metadata: {e}", file=str(meta), field="scene") from None
+        except (OSError, UnicodeDecodeError, ValueError, KeyError, TypeError) as e:
+            raise FastneusError(f"unreadable run metadata: {type(e).__name__}: {e}".splitlines()[0],
+                                file=str(meta), field="scene") from None
+        if not isinstance(scene, str) or not scene:
+            raise FastneusError(f"expected the scene folder's path, got {scene!r}", file=str(meta), field="scene")
+        if not Path(scene).exists():
+            raise FastneusError(f"the run's scene {scene} is gone (moved?); pass --scene DIR", file=str(meta),
+                                field="scene")
     sc = load_scene(scene)
     return sc, trainer_from_run(sc, rp, device)
+
+
+def _check_frames(frames: list[int], scene) -> list[int]:
+    for i in frames:
+        if not 0 <= i < len(scene.frames):
+            raise FastneusError(f"frame {i} out of range 0..{len(scene.frames) - 1}", field="--frame")
+    return frames
+
+
+def _check_resolution(res: int | None) -> None:
+    if res is not None and not 8 <= res <= 4096:
+        raise FastneusError(f"must be between 8 and 4096, got {res}", field="--resolution")
 
 
 def _mesh(args) -> int:
     from fastneus.export.mesh import extract_mesh, save_mesh
 
+    _check_resolution(args.resolution)
+    if args.out is not None:
+        if Path(args.out).is_dir():
+            raise FastneusError("is a folder; give a mesh file path ending in .ply or .obj", file=args.out,
+                                field="--out")
+        if Path(args.out).suffix.lower() not in (".ply", ".obj"):
+            raise FastneusError("mesh output must end in .ply or .obj", file=args.out, field="--out")
+        check_out_dir(Path(args.out).parent)
     device = resolve_device(args.device)
     scene, tr = open_run(args.run, device, args.scene)
     mesh = extract_mesh(tr.field, scene, args.resolution, tr.device, bound=tr.cfg.bound, allowed=tr.seen)
@@ -43,12 +70,11 @@ def _mesh(args) -> int:
 def _render(args) -> int:
     from fastneus.export.evaluate import render_frames, save_renders
 
+    if args.out is not None:
+        check_out_dir(args.out)
     device = resolve_device(args.device)
     scene, tr = open_run(args.run, device, args.scene)
-    frames = args.frame or [0]
-    for i in frames:
-        if not 0 <= i < len(scene.frames):
-            raise FastneusError(f"frame {i} out of range 0..{len(scene.frames) - 1}", field="--frame")
+    frames = _check_frames(args.frame or [0], scene)
     out = Path(args.out) if args.out else Path(args.run) / "renders"
     paths = save_renders(render_frames(tr, frames), out)
     for i, p in paths.items():
@@ -59,8 +85,11 @@ def _render(args) -> int:
 def _eval(args) -> int:
     from fastneus.pipeline import finish_run
 
+    _check_resolution(args.resolution)
     device = resolve_device(args.device)
-    _, tr = open_run(args.run, device, args.scene)
+    scene, tr = open_run(args.run, device, args.scene)
+    if args.frame:
+        _check_frames(args.frame, scene)  # before anything in the run folder is rewritten
     metrics = finish_run(tr, eval_frames=args.frame, mesh_resolution=args.resolution)
     print(json.dumps(metrics, indent=1))
     return 0

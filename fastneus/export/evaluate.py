@@ -17,6 +17,7 @@ import torch
 import trimesh
 from scipy.spatial import cKDTree
 
+from fastneus.errors import FastneusError
 from fastneus.field.renderer import render_image
 from fastneus.sampling import RayBank, build_projection
 
@@ -89,7 +90,12 @@ def geometry_metrics(mesh: trimesh.Trimesh, scene, train_frames: list[int], n_po
     out: dict = {"mesh_vertices": int(len(mesh.vertices)), "mesh_faces": int(len(mesh.faces))}
     rec = sample_surface(mesh, n_points, seed=1)
     if scene.gt_mesh:
-        gt_mesh = trimesh.load(scene.path(scene.gt_mesh), force="mesh", process=False)
+        try:
+            gt_mesh = trimesh.load(scene.path(scene.gt_mesh), force="mesh", process=False)
+        except Exception as e:  # noqa: BLE001 - trimesh raises many types for bad files
+            raise FastneusError(f"cannot load the ground-truth mesh {scene.path(scene.gt_mesh)}: "
+                                f"{type(e).__name__}: {e}".splitlines()[0], file=Path(scene.root) / "scene.json",
+                                field="gt.mesh") from None
         gt = sample_surface(gt_mesh, n_points, seed=0)
         diag = float(np.linalg.norm(gt_mesh.bounds[1] - gt_mesh.bounds[0]))
         out.update(chamfer_metrics(gt, rec, diag))

@@ -22,8 +22,10 @@ from typing import Any
 
 import numpy as np
 
-from fastneus.data.scene import FORMAT, VERSION, Scene, check_pose, image_size, rigid_inverse
+from fastneus.data.scene import (FORMAT, VERSION, Scene, check_faces_bounds, check_intrinsics, check_pose, image_size,
+                                 rigid_inverse)
 from fastneus.errors import FastneusError
+from fastneus.formats.safe_npz import npz_array, open_npz, read_number_dict
 
 NPZ = "cameras_sphere.npz"
 IMG_EXT = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
@@ -40,10 +42,9 @@ def _images(folder: Path) -> list[Path]:
 
 def _get(npz, key: str, shape: tuple[int, ...], file: Path) -> np.ndarray:
     """A finite float64 array ``npz[key]`` of exactly ``shape`` (-1 = any length)."""
-    if key not in npz.files:
-        raise FastneusError("missing key", file=file, field=key)
+    a = npz_array(npz, key, file)
     try:
-        a = np.asarray(npz[key], dtype=np.float64)
+        a = np.asarray(a, dtype=np.float64)
     except (TypeError, ValueError):
         raise FastneusError(f"expected a numeric array of shape {shape}", file=file, field=key) from None
     if a.ndim != len(shape) or any(s != -1 and s != t for s, t in zip(shape, a.shape)):
@@ -83,10 +84,7 @@ def open_npz_folder(root: Path):
     npz_path = root / NPZ
     if not npz_path.is_file():
         raise FastneusError("missing camera file", file=npz_path)
-    try:
-        npz = np.load(npz_path, allow_pickle=True)
-    except Exception as e:  # noqa: BLE001 - corrupt file: one line, not a trace
-        raise FastneusError(f"unreadable npz: {e}", file=npz_path) from None
+    npz = open_npz(npz_path)  # never unpickles: scenes are untrusted
     images = _images(root / "image")
     if not images:
         raise FastneusError("no images found (expected image/NNN.png)", file=root / "image")
@@ -130,7 +128,7 @@ def read_activeneus(path: str | os.PathLike) -> Scene:
     # per-frame matrices
     Ks, poses, Ss, PKs, CPs = [], [], [], [], []
     for i in range(n):
-        Ks.append(_get(npz, f"cam_mat_{i}", (4, 4), npz_path)[:3, :3])
+        Ks.append(check_intrinsics(_get(npz, f"cam_mat_{i}", (4, 4), npz_path)[:3, :3], npz_path, f"cam_mat_{i}"))
         poses.append(check_pose(_get(npz, f"cam_pose_{i}", (4, 4), npz_path), npz_path, f"cam_pose_{i}"))
         Ss.append(_get(npz, f"scale_mat_{i}", (4, 4), npz_path))
         has_proj = f"proj_mat_{i}" in npz.files or f"cam_proj_pose_{i}" in npz.files
@@ -138,6 +136,8 @@ def read_activeneus(path: str | os.PathLike) -> Scene:
         CPs.append(_get(npz, f"cam_proj_pose_{i}", (-1, 4, 4), npz_path) if has_proj else np.zeros((0, 4, 4)))
         for k in range(len(CPs[i])):
             check_pose(CPs[i][k], npz_path, f"cam_proj_pose_{i}[{k}]")
+        for k in range(len(PKs[i])):
+            check_intrinsics(PKs[i][k][:3, :3], npz_path, f"proj_mat_{i}[{k}]")
         if len(PKs[i]) != len(CPs[i]):
             raise FastneusError(f"{len(CPs[i])} projector poses but proj_mat_{i} has {len(PKs[i])}",
                                 file=npz_path, field=f"cam_proj_pose_{i}")
@@ -156,6 +156,13 @@ def read_activeneus(path: str | os.PathLike) -> Scene:
         if not np.allclose(Ss[i], S, rtol=1e-6, atol=1e-9):
             raise FastneusError("differs from scale_mat_0; all frames must share one normalisation",
                                 file=npz_path, field=f"scale_mat_{i}")
+    # named by npz key here (Scene validation would name scene.json fields)
+    for i in range(n):
+        c2w = rigid_inverse(poses[i])
+        check_faces_bounds(c2w, S[:3, 3], s, "camera", npz_path, f"cam_pose_{i}")
+        for k in range(len(CPs[i])):
+            check_faces_bounds(c2w @ rigid_inverse(CPs[i][k]), S[:3, 3], s, "projector", npz_path,
+                               f"cam_proj_pose_{i}[{k}]")
 
     # pattern files: frame i uses group i; a single group (or identical groups) is shared
     if P and not pat_groups:
@@ -246,22 +253,15 @@ def read_activeneus(path: str | os.PathLike) -> Scene:
 
     illum = {"i_r": 0.4, "i_b": 0.1, "ambient": 1.0, "known": False}
     if "illumination_params" in npz.files:
-        ip = npz["illumination_params"]
-        ip = ip.item() if isinstance(ip, np.ndarray) and ip.dtype == object else ip
-        if not isinstance(ip, dict):
-            raise FastneusError("expected a dict {ambient, diffuse, emissive}", file=npz_path,
-                                field="illumination_params")
+        # the official format pickles this dict: decoded by a restricted unpickler
+        ip = read_number_dict(npz, "illumination_params", npz_path)
         for key, name in (("diffuse", "i_r"), ("emissive", "i_b"), ("ambient", "ambient")):
             if key not in ip:
                 raise FastneusError("missing key", file=npz_path, field=f"illumination_params.{key}")
-            try:
-                v = float(ip[key])
-            except (TypeError, ValueError):
-                v = float("nan")
-            if not np.isfinite(v):
+            if not np.isfinite(ip[key]):
                 raise FastneusError(f"expected a finite number, got {ip[key]!r}", file=npz_path,
                                     field=f"illumination_params.{key}")
-            illum[name] = v
+            illum[name] = ip[key]
 
     data = {"format": FORMAT, "version": VERSION, "units": "m", "name": root.resolve().name,
             "bounds": {"center": S[:3, 3].tolist(), "radius": float(s)},

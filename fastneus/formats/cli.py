@@ -53,14 +53,22 @@ def write_fastneus(scene, out: str | os.PathLike):
 
 def _convert(args) -> int:
     from fastneus.formats.detect import load_scene
+    from fastneus.io import check_out_dir, staged_dir
 
+    check_out_dir(args.out)
+    if args.downscale < 1:
+        raise FastneusError(f"must be an integer >= 1, got {args.downscale}", field="--downscale")
     scene = load_scene(args.scene)
-    if args.to == "fastneus":
-        write_fastneus(scene, args.out)
-    else:
-        from fastneus.formats.activeneus import write_activeneus
+    if Path(args.out).resolve() == Path(scene.root).resolve():
+        raise FastneusError("output folder is the input folder; choose another --out", file=args.out, field="--out")
+    # written aside and moved in at the end: an unreadable image found half-way leaves --out as it was
+    with staged_dir(args.out, replace=("image", "mask", "pattern", "gt")) as stage:
+        if args.to == "fastneus":
+            write_fastneus(scene, stage)
+        else:
+            from fastneus.formats.activeneus import write_activeneus
 
-        write_activeneus(scene, args.out, downscale=args.downscale)
+            write_activeneus(scene, stage, downscale=args.downscale)
     print(f"wrote {args.to} scene with {len(scene.frames)} frames -> {args.out}")
     return 0
 
@@ -80,6 +88,9 @@ def _list_images(folder: str, what: str) -> list[Path]:
 def _import_calib(args) -> int:
     from fastneus.formats.opencv_calib import make_scene_from_calibration
 
+    from fastneus.io import check_out_dir
+
+    check_out_dir(args.out)
     bounds = None
     if args.bounds:
         try:

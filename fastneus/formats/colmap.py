@@ -41,7 +41,12 @@ class ColmapImage:
 def _lines(path: Path) -> list[str]:
     if not path.is_file():
         raise FastneusError("file not found (expected a COLMAP text model)", file=path)
-    return [ln.rstrip("\n") for ln in path.read_text().splitlines() if not ln.startswith("#")]
+    try:
+        text = path.read_text()
+    except (OSError, UnicodeDecodeError) as e:
+        raise FastneusError(f"cannot read as text ({type(e).__name__}); expected a COLMAP text model "
+                            "(export with colmap model_converter --output_type TXT)", file=path) from None
+    return [ln.rstrip("\n") for ln in text.splitlines() if not ln.startswith("#")]
 
 
 def qvec_to_rotation(q) -> np.ndarray:
@@ -87,6 +92,9 @@ def read_images_txt(path: str | os.PathLike) -> dict[str, ColmapImage]:
             raise FastneusError(f"cannot parse image line {ln!r}", file=path) from None
         if not (np.all(np.isfinite(q)) and np.all(np.isfinite(tv))) or np.linalg.norm(q) == 0 or not name:
             raise FastneusError(f"bad pose on image line {ln!r}", file=path, field=name or str(iid))
+        if name in out:
+            raise FastneusError(f"duplicate image {name!r} (image ids {out[name].id} and {iid})", file=path,
+                                field=name)
         T = np.eye(4)
         T[:3, :3] = qvec_to_rotation(q)
         T[:3, 3] = tv
@@ -102,7 +110,17 @@ def read_points3d_txt(path: str | os.PathLike) -> np.ndarray | None:
     path = Path(path)
     if not path.is_file():
         return None
-    pts = [ln.split()[1:4] for ln in _lines(path) if ln.strip()]
+    pts = []
+    for ln in _lines(path):
+        t = ln.split()
+        if not t:
+            continue
+        try:
+            pts.append([float(v) for v in t[1:4]])
+        except ValueError:
+            t = []
+        if len(t) < 4 or not np.all(np.isfinite(pts[-1])):
+            raise FastneusError(f"cannot parse point line {ln[:80]!r}", file=path)
     return np.array(pts, dtype=np.float64).reshape(-1, 3)
 
 

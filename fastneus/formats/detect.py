@@ -8,8 +8,6 @@ from __future__ import annotations
 import importlib
 from pathlib import Path
 
-import numpy as np
-
 from fastneus.errors import FastneusError
 
 
@@ -22,10 +20,9 @@ def detect_format(path: str | Path) -> str:
         raise FastneusError("scene not found", file=str(p))
     npz = p / "cameras_sphere.npz"
     if npz.is_file():
-        try:
-            keys = set(np.load(npz, allow_pickle=True).files)
-        except Exception as e:  # noqa: BLE001 - report, do not trace
-            raise FastneusError(f"unreadable npz: {e}", file=str(npz)) from None
+        from fastneus.formats.safe_npz import open_npz
+
+        keys = set(open_npz(npz).files)  # lists keys only; never unpickles
         if "cam_proj_pose_0" in keys or "cam_mat_0" in keys:
             return "activeneus"
         if "world_mat_0" in keys:

@@ -17,6 +17,7 @@ import numpy as np
 from fastneus.data.scene import FORMAT, VERSION, Scene, image_size
 from fastneus.errors import FastneusError
 from fastneus.formats.activeneus import NPZ, _get, _group, _images, _rel, open_npz_folder
+from fastneus.formats.safe_npz import npz_array
 
 
 def decompose_projection(P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -58,14 +59,11 @@ def read_neus(path: str | os.PathLike) -> Scene:
     S = None
     for i in range(len(images)):
         key = f"world_mat_{i}"
-        if key not in npz.files:
-            raise FastneusError("missing key", file=npz_path, field=key)
-        Wm = np.asarray(npz[key], dtype=np.float64)
+        Wm = npz_array(npz, key, npz_path)
         if Wm.shape not in ((3, 4), (4, 4)):
-            raise FastneusError(f"expected shape 3x4 or 4x4, got {'x'.join(map(str, Wm.shape))}",
+            raise FastneusError(f"expected shape 3x4 or 4x4, got {'x'.join(map(str, Wm.shape)) or 'scalar'}",
                                 file=npz_path, field=key)
-        if not np.all(np.isfinite(Wm)):
-            raise FastneusError("contains non-finite values (nan/inf)", file=npz_path, field=key)
+        Wm = _get(npz, key, Wm.shape, npz_path)  # numeric and finite
         if abs(np.linalg.det(Wm[:3, :3])) < 1e-12:
             raise FastneusError("singular projection matrix", file=npz_path, field=key)
         K, pose = decompose_projection(Wm)

@@ -33,6 +33,7 @@ import numpy as np
 
 from fastneus.data.scene import FORMAT, VERSION, Camera, Projector, Scene, check_pose, image_size, rigid_inverse
 from fastneus.errors import FastneusError
+from fastneus.io import staged_dir
 
 # layout name -> (cam K, cam dist, proj K, proj dist, R candidates, T)
 LAYOUTS = {
@@ -53,9 +54,10 @@ def _read_nodes(paths: Sequence[Path]) -> dict[str, tuple[Path, object]]:
             raise FastneusError("calibration file not found", file=p)
         try:
             fs = cv2.FileStorage(str(p), cv2.FILE_STORAGE_READ)
-        except cv2.error as e:
-            raise FastneusError(f"cannot parse as OpenCV YAML/XML: {str(e).strip().splitlines()[-1]}",
-                                file=p) from None
+        except (cv2.error, SystemError) as e:  # some parse errors surface as SystemError (cv2.error as cause)
+            msg = str(e.__cause__ or e).strip().splitlines()[-1]
+            msg = msg.split(" in function '", 1)[-1].rstrip("'")  # keep "file(line): what", drop the C++ source path
+            raise FastneusError(f"cannot parse as OpenCV YAML/XML: {msg}", file=p) from None
         if not fs.isOpened():
             raise FastneusError("cannot open as OpenCV YAML/XML", file=p)
         root = fs.root()
@@ -270,7 +272,7 @@ def make_scene_from_calibration(calib, images: Sequence, patterns: Sequence, pos
                             field="--patterns")
     wh0 = image_size(images[0])
     if wh0 is None:
-        raise FastneusError("cannot read image", file=images[0])
+        raise FastneusError("cannot read image", file=images[0], field="--images")
     if isinstance(calib, (tuple, list)) and len(calib) == 2 and isinstance(calib[0], Camera):
         cam, proj = calib
     else:
@@ -279,7 +281,7 @@ def make_scene_from_calibration(calib, images: Sequence, patterns: Sequence, pos
                                             cam_size=wh0)
     if (cam.width, cam.height) != wh0:
         raise FastneusError(f"image is {wh0[0]}x{wh0[1]} but the calibration's camera is "
-                            f"{cam.width}x{cam.height}", file=images[0])
+                            f"{cam.width}x{cam.height}", file=images[0], field="--images")
 
     poses_path = Path(poses)
     center = radius = None
@@ -311,18 +313,39 @@ def make_scene_from_calibration(calib, images: Sequence, patterns: Sequence, pos
         center = _axes_meeting_point(c2ws)
         radius = 0.5 * min(float(np.linalg.norm(T[:3, 3] - center)) for T in c2ws)
 
+    # every input file is checked before anything is copied, naming the file the user gave
+    for i, p in enumerate(images):
+        wh = image_size(p) if p.is_file() else None
+        if wh != (cam.width, cam.height):
+            why = "image not found" if not p.is_file() else "cannot read image" if wh is None else \
+                f"image is {wh[0]}x{wh[1]} but the calibration's camera is {cam.width}x{cam.height}"
+            raise FastneusError(why, file=p, field="--images")
+    for q in pats:
+        wh = image_size(q) if q.is_file() else None
+        if wh != (proj.width, proj.height):
+            why = "pattern not found" if not q.is_file() else "cannot read image" if wh is None else \
+                f"pattern is {wh[0]}x{wh[1]} but the projector is {proj.width}x{proj.height}"
+            raise FastneusError(why, file=q, field="--patterns")
+
     out = Path(out)
+    # built aside and moved in at the end: a failure leaves an earlier scene in ``out`` intact
+    with staged_dir(out, replace=("image", "pattern")) as stage:
+        _write_calibrated_scene(stage, out.resolve().name, cam, proj, images, pats, c2ws, center, radius,
+                                poses_path)
+    return Scene.load(out)
+
+
+def _write_calibrated_scene(out: Path, name: str, cam: Camera, proj: Projector, images: list[Path],
+                            pats: list[Path], c2ws: list[np.ndarray], center, radius: float,
+                            poses_path: Path) -> None:
+    """Copy photos and patterns into ``out`` and write its validated ``scene.json``."""
     (out / "image").mkdir(parents=True, exist_ok=True)
     (out / "pattern").mkdir(parents=True, exist_ok=True)
     frames, pat_ids = [], {}
     for i, p in enumerate(images):
-        if not p.is_file():
-            raise FastneusError("image not found", file=p)
         dst = f"image/{i:03d}{p.suffix.lower()}"
         shutil.copyfile(p, out / dst)
         q = pats[0 if len(pats) == 1 else i]
-        if not q.is_file():
-            raise FastneusError("pattern not found", file=q)
         key = str(q.resolve())
         if key not in pat_ids:
             pid = f"p{len(pat_ids):03d}"
@@ -330,7 +353,7 @@ def make_scene_from_calibration(calib, images: Sequence, patterns: Sequence, pos
             pat_ids[key] = (pid, f"pattern/{pid}{q.suffix.lower()}")
         frames.append({"image": dst, "camera": cam.id, "cam_to_world": c2ws[i].tolist(), "view": i,
                        "projectors": {proj.id: {"pattern": pat_ids[key][0]}}})
-    data = {"format": FORMAT, "version": VERSION, "units": "m", "name": out.resolve().name,
+    data = {"format": FORMAT, "version": VERSION, "units": "m", "name": name,
             "bounds": {"center": np.asarray(center).tolist(), "radius": float(radius)},
             "cameras": {cam.id: {"K": cam.K.tolist(), "width": cam.width, "height": cam.height,
                                  "dist": np.asarray(cam.dist).tolist()}},
@@ -339,6 +362,4 @@ def make_scene_from_calibration(calib, images: Sequence, patterns: Sequence, pos
             "patterns": {pid: {"file": f} for pid, f in pat_ids.values()},
             "frames": frames,
             "meta": {"source_format": "opencv-calibration", "poses": str(poses_path.resolve())}}
-    scene = Scene.from_dict(data, root=out)
-    scene.save(out)
-    return scene
+    Scene.from_dict(data, root=out).save(out)

@@ -45,7 +45,7 @@ def _run(args, tag: str, default_preset: str, oneshot_frame: int | None = None) 
     con.print(f"[bold]fastneus {tag}[/bold]: scene {args.scene} ({len(scene.frames)} frames, "
               f"{len(cfg.frames) if cfg.frames else len(scene.frames)} used), preset {cfg.preset}, "
               f"device {device}, backend {cfg.backend} -> {out}")
-    _, metrics = train_scene(scene, cfg, out, device, console=con, resume=args.resume)
+    _, metrics = train_scene(scene, cfg, out, device, console=con, resume=args.resume, overwrite=args.overwrite)
     show = [k for k in ("chamfer_gt2rec_mm", "chamfer_gt2rec_filtered_mm", "visible_gt2rec_mm", "fscore",
                         "psnr_pattern", "psnr_texture", "i_r", "i_b") if k in metrics]
     con.print("  ".join(f"{k} {metrics[k]:.4g}" for k in show))
@@ -58,7 +58,10 @@ def _common(p: argparse.ArgumentParser) -> None:
     p.add_argument("--config", help="preset name (fewview, oneshot, cpu-quick, passive, paper) or YAML file "
                                     "(default: fewview on cuda, cpu-quick on cpu)")
     p.add_argument("--out", help="run folder (default runs/<scene>-<verb>)")
-    p.add_argument("--resume", action="store_true", help="continue from the run folder's checkpoint")
+    p.add_argument("--resume", action="store_true", help="continue from the run folder's checkpoint "
+                                                         "(also after Ctrl-C, which saves one)")
+    p.add_argument("--overwrite", action="store_true", help="replace a run already in the run folder "
+                                                            "(refused otherwise)")
     add_device_arg(p)
     p.add_argument("overrides", nargs="*", metavar="key=value", help="config overrides, e.g. steps=2000 lr=0.005")
 

@@ -16,12 +16,10 @@ from fastneus.config import Config, config_from_dict, save_config
 from fastneus.errors import FastneusError
 from fastneus.field.model import SDFField
 from fastneus.field.renderer import render_rays
-from fastneus.io import atomic_write
 from fastneus.kernels.occupancy import OccupancyGrid
+from fastneus.train.checkpoint import CKPT_NAME, load_checkpoint, restore, save_checkpoint  # noqa: F401 (re-export)
 from fastneus.train.guard import finite_step
 from fastneus.sampling import RayBank, build_projection
-
-CKPT_NAME = "checkpoint.pt"
 
 
 def resolve_masks(scene, frames: list[int], cfg: Config) -> tuple[bool, str]:
@@ -92,6 +90,8 @@ class Trainer:
         self.bank = RayBank(scene, self.frames, self.device, load_masks=self.masks_used,
                             brightness_cdf=cfg.bright_fraction > 0,
                             background=cfg.background if want_bg else None, bg_tolerance=cfg.bg_tolerance)
+        if self.bank.empty_masks:  # all-zero masks: the object is outside those views (or a wrong file)
+            self.masks_note += f"; warning: empty (all-zero) mask {', '.join(self.bank.empty_masks)}"
         self.bg_used, self.bg_note = resolve_bg_prior(cfg, self.masks_used, self.bank.bg_fraction)
         self.proj = build_projection(scene, self.frames, self.device)
         self.field = SDFField(cfg, self.device)
@@ -125,6 +125,7 @@ class Trainer:
         self._grid_open = False     # grid forced fully occupied (warm-up) since the last update
         self.gen = torch.Generator(device=self.device)
         self.gen.manual_seed(cfg.seed)
+        self.stop_signal: str | None = None  # set by interrupt.stop_on_signal: stop after this step
 
     # ------------------------------------------------------------------ helpers
     def illumination(self) -> tuple[torch.Tensor, torch.Tensor]:
@@ -143,6 +144,8 @@ class Trainer:
         return min(1.0, p)
 
     def finished(self) -> bool:
+        if self.stop_signal is not None:
+            return True
         if self.cfg.time_budget > 0:
             return self.elapsed >= self.cfg.time_budget
         return self.step >= self.cfg.steps
@@ -320,9 +323,7 @@ class Trainer:
 
     def save(self) -> Path:
         """Write the checkpoint atomically (temp file + rename): a crash keeps the previous one."""
-        path = self.out / CKPT_NAME
-        atomic_write(path, lambda tmp: torch.save(self.state(), tmp))
-        return path
+        return save_checkpoint(self.state(), self.out / CKPT_NAME)
 
     def load_state(self, st: dict, with_optimizer: bool = True) -> None:
         self.field.load_state_dict(st["field"])
@@ -342,21 +343,10 @@ class Trainer:
             self.gen.set_state(st["gen"])
 
 
-def load_checkpoint(run: Path, map_location="cpu") -> dict:
-    """Read a run's checkpoint; one clear error if it is missing or unreadable."""
-    path = Path(run) / CKPT_NAME
-    if not path.is_file():
-        raise FastneusError("no checkpoint in this run folder (train first)", file=str(path))
-    try:
-        return torch.load(path, map_location=map_location, weights_only=False)
-    except Exception as e:  # noqa: BLE001 - a corrupt file must not become a traceback
-        raise FastneusError(f"unreadable checkpoint: {type(e).__name__}: {e}", file=str(path)) from None
-
-
 def trainer_from_run(scene, run: Path, device: str, cfg: Config | None = None) -> Trainer:
     """Rebuild a trainer (field, grid, illumination) from a run folder's checkpoint."""
     st = load_checkpoint(run, map_location=device)
     cfg = cfg or config_from_dict(st["config"], str(Path(run) / CKPT_NAME))
     tr = Trainer(scene, cfg, Path(run), device)
-    tr.load_state(st)
+    restore(tr, st, Path(run) / CKPT_NAME)
     return tr

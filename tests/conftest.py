@@ -1,0 +1,25 @@
+"""Shared fixtures: one very small synthetic scene and run settings small enough for CPU tests."""
+from __future__ import annotations
+
+import pytest
+
+# a model and batch small enough that building a trainer and a few steps take well under a second
+SMALL_RUN = ["steps=4", "log_every=1", "save_every=2", "occ_resolution=16", "mesh_resolution=16", "log2_table=12",
+             "levels=4", "finest_res=64", "target_samples=1024", "init_rays=64", "min_rays=32", "max_rays=128",
+             "render_frames=[0]"]
+
+
+@pytest.fixture(scope="session")
+def small_scene(tmp_path_factory):
+    """A sphere in 3 views of 24x24 with masks and per-frame ground truth (fastneus format); do not modify.
+
+    The GT mesh is left out of scene.json: Chamfer on 100k points would dominate these tests' time.
+    """
+    from fastneus.synth import synthesize
+
+    out = tmp_path_factory.mktemp("small") / "sphere3"
+    scene = synthesize(out, shape="sphere", views=3, size=(24, 24), pattern="crosslaser", illum="normal", seed=0,
+                       device="cpu", proj_size=(64, 48), progress=False, contact_sheet=False)
+    scene.gt_mesh = None
+    scene.save()
+    return out
