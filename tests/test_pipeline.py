@@ -57,6 +57,8 @@ def test_loss_falls_mesh_inside_bounds_metrics_written(trained):
         assert k in m and np.isfinite(m[k]), k
     assert (run / "report.html").is_file() and (run / "illumination.json").is_file()
     assert m["steps"] == STEPS
+    # visible-surface depth error on the 4 training viewpoints (mesh ray-cast vs GT depth)
+    assert m["depth_views"] == 4 and 0 < m["depth_coverage"] <= 1 and np.isfinite(m["depth_err_pct"])
 
 
 def test_resume_continues_step_count(trained, tiny_scene, tmp_path):
