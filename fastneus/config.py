@@ -51,6 +51,10 @@ class Config:
     bg_tolerance: float = 0.008        # per-channel distance to `background` still counted as it (~2/255)
     bright_fraction: float = 0.5       # share of rays drawn in proportion to pixel brightness: sparse
                                        # laser lines in dark scenes are otherwise almost never sampled
+    # --- multi-shot (several patterns per viewpoint, e.g. Gray code; fastneus/multishot.py) ---
+    group_shots: bool = True           # one ray per viewpoint pixel carries its shots (one march and field
+                                       # evaluation for all); false = every shot's pixels are separate rays
+    shots_per_ray: int = 4             # shots rendered per ray and step, drawn at random (0 = all, in order)
 
     # --- occupancy grid ---
     occ_resolution: int = 128
@@ -206,6 +210,8 @@ def validate(cfg: Config, source: str = "config") -> None:
             raise FastneusError(f"must be > 0, got {getattr(cfg, k)!r}", file=source, field=k)
     if cfg.min_rays > cfg.max_rays:
         raise FastneusError("min_rays must not exceed max_rays", file=source, field="min_rays")
+    if cfg.shots_per_ray < 0:
+        raise FastneusError(f"must be >= 0 (0 = all shots), got {cfg.shots_per_ray}", file=source, field="shots_per_ray")
     if cfg.min_views < 0:
         raise FastneusError(f"must be >= 0, got {cfg.min_views}", file=source, field="min_views")
     for k in _FRACTIONS:
