@@ -121,3 +121,33 @@ def test_trainer_uses_shot_bank_and_trains(gray, tmp_path):
     assert isinstance(make_bank(gray, [0, 1, 12], "cpu", flat), RayBank)
     with pytest.raises(FastneusError, match="shots_per_ray"):
         load_config("cpu-quick", ["shots_per_ray=-1"])
+
+
+def test_geometry_init_from_decoded_gray_code(tmp_path):
+    """init_geometry=auto on a one-view Gray-code scene: the SDF starts at the decoded surface."""
+    from fastneus.geometry_init import decodable_views, decoded_points, initialise_geometry
+    from fastneus.train.trainer import Trainer
+
+    s = synthesize(tmp_path / "g1", shape="toy", views=1, size=(48, 48), pattern="graycode", seed=4, progress=False)
+    assert decodable_views(s, list(range(20))) == [list(range(20))]
+    assert decodable_views(s, list(range(19))) is None
+    cfg = load_config("cpu-quick", ["levels=8", "log2_table=14", "init_geometry_steps=80"])
+    tr = Trainer(s, cfg, tmp_path / "r", "cpu")
+    dec = decoded_points(s, [list(range(20))])
+    b = s.bounds
+    P = torch.tensor((dec["points"] - b.center) / b.radius, dtype=torch.float32)
+    D = torch.tensor(dec["dirs"], dtype=torch.float32)
+    with torch.no_grad():
+        before = tr.field.sdf(P).abs().mean()
+    note = initialise_geometry(tr)
+    assert note and "decoded Gray code" in note and tr.field.active_levels == cfg.levels
+    with torch.no_grad():
+        f0 = tr.field.sdf(P)
+        f_front = tr.field.sdf(P - 0.03 * D)
+    assert f0.abs().mean() < 0.25 * before and f0.abs().mean() < 0.01
+    assert (f_front > 0).float().mean() > 0.9
+    sphere = Trainer(s, load_config("cpu-quick", ["init_geometry=sphere"]), tmp_path / "r2", "cpu")
+    assert initialise_geometry(sphere) is None
+    with pytest.raises(FastneusError, match="init_geometry=decode"):
+        initialise_geometry(Trainer(s, load_config("cpu-quick", ["init_geometry=decode", "frames=[0, 1]"]),
+                                    tmp_path / "r3", "cpu"))

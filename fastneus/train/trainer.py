@@ -256,6 +256,14 @@ class Trainer:
         c = self.cfg
         save_config(c, self.out / "config.yaml")
         self.prime()
+        from fastneus.geometry_init import initialise_geometry
+
+        t0 = time.perf_counter()
+        note = initialise_geometry(self)  # e.g. from decoded Gray code; its time counts as training
+        if note:
+            self.elapsed += time.perf_counter() - t0
+            if self.console is not None:
+                self.console.print(note)
         logf = open(self.out / "log.jsonl", "a")
         last = {}
         samples_total, t_window, steps_window = 0, time.perf_counter(), 0
