@@ -227,7 +227,7 @@ def phased_step(tr, pt: PhaseTimer) -> int:
     tr.grid.update(tr.field.sdf, float(tr.field.inv_s().detach()), c.march_step, threshold=c.occ_threshold,
                    margin=math.sqrt(3) / tr.grid.resolution, backend=c.backend)
     pt.lap("occupancy update")
-    tr._set_lr()
+    tr._set_lr(tr.progress())
     batch = tr.bank.sample(tr.n_rays, tr.gen, bright_fraction=c.bright_fraction)
     o, d, fidx = batch["origins"], batch["dirs"], batch["fidx"]
     n = o.shape[0]
