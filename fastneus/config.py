@@ -51,6 +51,13 @@ class Config:
     bg_tolerance: float = 0.008        # per-channel distance to `background` still counted as it (~2/255)
     bright_fraction: float = 0.5       # share of rays drawn in proportion to pixel brightness: sparse
                                        # laser lines in dark scenes are otherwise almost never sampled
+    # --- multi-shot (several patterns per viewpoint, e.g. Gray code; fastneus/multishot.py) ---
+    group_shots: bool = True           # one ray per viewpoint pixel carries its shots (one march and field
+                                       # evaluation for all); false = every shot's pixels are separate rays
+    shots_per_ray: int = 4             # shots rendered per ray and step, drawn at random (0 = all, in order)
+    init_geometry: str = "auto"        # auto | decode | sphere: start the SDF at the Gray-code decoder's surface
+                                       # when every viewpoint is a Gray-code sequence (fastneus/geometry_init.py)
+    init_geometry_steps: int = 300     # SDF fit steps of that initialisation (counted in the training time)
 
     # --- occupancy grid ---
     occ_resolution: int = 128
@@ -116,6 +123,7 @@ _CHOICES = {
     "illum_init": ("scene", "ones"),
     "masks": ("auto", "on", "off"),
     "bg_prior": ("auto", "on", "off"),
+    "init_geometry": ("auto", "decode", "sphere"),
 }
 # fractions of the run: each must lie in [0, 1]
 _FRACTIONS = ("occ_warmup_frac", "c2f_frac", "inv_s_floor_frac", "warmup_frac", "color_warmup_frac",
@@ -128,7 +136,7 @@ _LEGACY_STEPS = {"occ_warmup_steps": "occ_warmup_frac", "warmup_steps": "warmup_
 _POSITIVE = {"steps", "target_samples", "init_rays", "min_rays", "max_rays", "march_step",
              "max_samples_per_ray", "occ_resolution", "occ_update_every", "levels", "features",
              "log2_table", "base_res", "finest_res", "sdf_hidden", "geo_features", "color_hidden",
-             "lr", "adam_eps", "mesh_resolution", "log_every", "save_every"}
+             "lr", "adam_eps", "mesh_resolution", "log_every", "save_every", "init_geometry_steps"}
 
 
 def preset_names() -> list[str]:
@@ -210,6 +218,8 @@ def validate(cfg: Config, source: str = "config") -> None:
             raise FastneusError(f"must be > 0, got {getattr(cfg, k)!r}", file=source, field=k)
     if cfg.min_rays > cfg.max_rays:
         raise FastneusError("min_rays must not exceed max_rays", file=source, field="min_rays")
+    if cfg.shots_per_ray < 0:
+        raise FastneusError(f"must be >= 0 (0 = all shots), got {cfg.shots_per_ray}", file=source, field="shots_per_ray")
     if cfg.min_views < 0:
         raise FastneusError(f"must be >= 0, got {cfg.min_views}", file=source, field="min_views")
     for k in _FRACTIONS:

@@ -123,6 +123,42 @@ def decode_graycode(images, width: int, height: int, inverse: bool = False,
     return decode(0, ncb), decode(ncb, nrb)
 
 
+def decode_graycode_captured(images, width: int, height: int, min_contrast: float = 0.06
+                             ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Decode photographs of a :func:`graycode` sequence (no inverse planes) with a per-pixel threshold.
+
+    A photo of a Gray-code plane is ``D`` where the bit is off and ``D + i_r D + i_b`` where it is on,
+    with the surface colour ``D`` varying across the image, so one global threshold fails. Each pixel
+    is lit in some planes and dark in others, so its own midpoint ``(min + max) / 2`` over the whole
+    sequence separates the two; pixels whose range is below ``min_contrast`` (shadowed, outside the
+    projector, background) are invalid.
+
+    Args:
+        images: the captured sequence in :func:`graycode` order, each [h, w, 3] or [h, w]
+            (uint8 or float in [0, 1]).
+        width, height: the projector size the patterns were made for.
+        min_contrast: smallest max - min (in [0, 1] units) for a valid pixel.
+
+    Returns:
+        col, row: int64 [h, w] projector column / row per pixel (undefined where not valid);
+        valid: bool [h, w].
+    """
+    ncb, nrb = gray_bits(width), gray_bits(height)
+    if len(images) != ncb + nrb:
+        raise FastneusError(f"expected {ncb + nrb} Gray-code images for {width}x{height}, got {len(images)}",
+                            field="images")
+    scale = 1.0 / 255.0 if np.asarray(images[0]).dtype == np.uint8 else 1.0
+    ims = np.stack([np.asarray(im, dtype=np.float32) * scale for im in images])
+    if ims.ndim == 4:
+        ims = ims.mean(axis=3)  # [n, h, w]
+    lo, hi = ims.min(axis=0), ims.max(axis=0)
+    valid = (hi - lo) >= min_contrast
+    mid = 0.5 * (lo + hi)
+    col, row = decode_graycode(list(ims > mid[None]), width, height, threshold=0.5)
+    valid &= (col < width) & (row < height)
+    return col, row, valid
+
+
 def grid(width: int, height: int, seed: int = 0, count: int = 16, line_width: int = 2, **_) -> list[np.ndarray]:
     """White grid: ``count`` lines per axis, ``line_width`` px wide."""
     rng = np.random.default_rng(seed)

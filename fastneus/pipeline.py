@@ -50,6 +50,9 @@ def finish_run(trainer, console=None, eval_frames: list[int] | None = None, mesh
                      "masks_used": bool(trainer.masks_used), "bg_prior_used": bool(trainer.bg_used)}
     metrics.update(illumination_metrics(trainer))
     metrics.update(geometry_metrics(mesh, scene, trainer.frames))
+    from fastneus.export.depth import view_depth_metrics
+
+    metrics.update(view_depth_metrics(mesh, scene, trainer.frames, trainer.device))  # visible-surface depth error
     metrics.update(image_metrics(scene, renders))
     atomic_write_json(run / "metrics.json", metrics)
     ill = {k: metrics[k] for k in ("i_r", "i_b", "i_r_gt", "i_b_gt", "i_r_err", "i_b_err") if k in metrics}

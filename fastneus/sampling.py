@@ -137,6 +137,17 @@ class RayBank:
                                 "shows the object", file=scene.path(scene.frames[i].mask), field=f"frames[{i}].mask")
         return [str(scene.path(scene.frames[self.frames[a]].mask)) for a in empty]
 
+    def mean_rgb(self, chunk: int = 1 << 22) -> torch.Tensor:
+        """[3] mean pixel colour in [0, 1], summed in chunks (no float copy of the whole store)."""
+        tot = torch.zeros(3, dtype=torch.float64, device=self.device)
+        for a in range(0, self.n_pixels, chunk):
+            tot += self.rgb[a:a + chunk].sum(0, dtype=torch.float64)
+        return (tot / (255.0 * max(1, self.n_pixels))).float()
+
+    def store_bytes(self) -> int:
+        """Bytes of the image store."""
+        return self.rgb.numel() * self.rgb.element_size()
+
     def rays(self, fidx: torch.Tensor, u: torch.Tensor, v: torch.Tensor):
         """Rays through pixel centres.
 

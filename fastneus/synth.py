@@ -494,11 +494,29 @@ def register(subparsers) -> None:
     p.add_argument("--noise", type=float, default=0.005, help="Gaussian noise sigma (default 0.005)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--proj-size", default="1024x768", help="projector size WxH (default 1024x768)")
+    p.add_argument("--baselines", default=None,
+                   help="projector x offsets on the rig in metres, comma-separated (default: -0.6,-0.2,0.2,0.6 "
+                        "for one-shot patterns, 0.6 for sequences); '0.6' = the paper's one-projector pattern study")
     p.add_argument("--no-contact-sheet", action="store_true")
     p.add_argument("--threads", type=int, default=1, help="torch CPU threads while rendering (default 1)")
     add_device_arg(p)
     p.add_argument("--out", required=True, help="output folder")
     p.set_defaults(func=_run)
+
+
+def parse_baselines(text: str | None) -> tuple[float, ...] | None:
+    """``"-0.6,0.6"`` -> (-0.6, 0.6) metres; None stays None (the pattern's default rig)."""
+    if text is None:
+        return None
+    try:
+        vals = tuple(float(v) for v in str(text).split(",") if v.strip())
+    except ValueError:
+        raise FastneusError(f"expected comma-separated metres such as 0.6 or -0.2,0.2, got {text!r}",
+                            field="--baselines") from None
+    if not vals or len(vals) > 8 or not all(math.isfinite(v) and v != 0 for v in vals):
+        raise FastneusError("give 1 to 8 non-zero finite offsets (a projector on the camera centre "
+                            "cannot triangulate)", field="--baselines")
+    return vals
 
 
 def _run(args) -> int:
@@ -512,5 +530,5 @@ def _run(args) -> int:
     synthesize(args.out, shape=args.shape, mesh=args.mesh, views=args.views, size=size, pattern=args.pattern,
                illum=args.illum, albedo=args.albedo, noise=args.noise, seed=args.seed, device=device,
                ambient=args.ambient, proj_size=psize, contact_sheet=not args.no_contact_sheet,
-               threads=args.threads)
+               threads=args.threads, baselines=parse_baselines(args.baselines))
     return 0

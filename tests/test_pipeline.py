@@ -59,6 +59,8 @@ def test_loss_falls_mesh_inside_bounds_metrics_written(trained):
     assert (run / "report.html").is_file() and (run / "illumination.json").is_file()
     assert m["steps"] == STEPS
     assert m["masks_used"] is True and m["fscore"] > 0.25, m  # the masks on disk were used; a torus was learned
+    # visible-surface depth error on the 4 training viewpoints (mesh ray-cast vs GT depth)
+    assert m["depth_views"] == 4 and 0 < m["depth_coverage"] <= 1 and np.isfinite(m["depth_err_pct"])
 
 
 def test_resume_continues_step_count(trained, tiny_scene, tmp_path):

@@ -10,9 +10,9 @@ import torch
 from fastneus.kernels import get_op
 
 
-def _empty(n_rays: int, device, dtype=torch.float32) -> dict:
+def _empty(n_rays: int, device, dtype=torch.float32, shots: int = 0) -> dict:
     z = lambda *s: torch.zeros(*s, device=device, dtype=dtype)  # noqa: E731
-    return {"color": z(n_rays, 3), "opacity": z(n_rays), "depth": z(n_rays), "texture": z(n_rays, 3),
+    return {"color": z(n_rays, shots, 3) if shots else z(n_rays, 3), "opacity": z(n_rays), "depth": z(n_rays), "texture": z(n_rays, 3),
             "normal": z(n_rays, 3), "grad": z(0, 3), "curv": None, "n_samples": 0}
 
 
@@ -27,7 +27,8 @@ def render_rays(field, bits: torch.Tensor, grid_res: int, proj, origins: torch.T
         bits: [R^3] uint8 occupancy bits; grid_res: R.
         proj: :class:`fastneus.sampling.Projection` (per-frame projector data).
         origins, dirs: [B, 3] float32 normalised rays (dirs unit length).
-        fidx: [B] int32 row of ``proj`` (frame) per ray.
+        fidx: [B] int32 row of ``proj`` (frame) per ray, or [B, K] for K shots of one viewpoint per ray
+            (multi-shot: the samples and field are shared, the pattern term is rendered per shot).
         cfg: run config (march step, sample cap, bound, backend).
         i_r, i_b: [1] illumination (reflectance, bias).
         cos_anneal: NeuS cos-anneal ratio in [0, 1].
@@ -36,7 +37,7 @@ def render_rays(field, bits: torch.Tensor, grid_res: int, proj, origins: torch.T
         curvature: also return the curvature residual per sample.
         use_pattern: override ``cfg.use_pattern`` (False renders without projection).
     Returns:
-        dict with color [B,3], opacity [B], depth [B] (normalised t), texture [B,3],
+        dict with color [B,3] ([B,K,3] for a [B,K] fidx), opacity [B], depth [B] (normalised t), texture [B,3],
         normal [B,3] (if asked), grad [S,3], curv [S] or None, n_samples (int).
     """
     device = origins.device
@@ -48,7 +49,7 @@ def render_rays(field, bits: torch.Tensor, grid_res: int, proj, origins: torch.T
                                                cfg.max_samples_per_ray, jit, cfg.bound, 0.0)
     s = t0.shape[0]
     if s == 0:
-        return _empty(n, device)
+        return _empty(n, device, shots=fidx.shape[1] if fidx.dim() == 2 else 0)
     ri = ray_index.long()
     d_s = dirs[ri]
     pos = origins[ri] + d_s * ((t0 + t1) * 0.5)[:, None]
@@ -56,10 +57,18 @@ def render_rays(field, bits: torch.Tensor, grid_res: int, proj, origins: torch.T
     color = field.color(pos, grad, d_s, geo)
     pattern_on = cfg.use_pattern if use_pattern is None else use_pattern
     pat = proj.pattern if pattern_on else torch.full_like(proj.pattern, -1)
-    out = render(sdf, grad, color, pos, t0, t1, ray_index, offsets, counts, dirs, fidx,
-                 proj.K, proj.W, pat, proj.store, field.inv_s(), float(cos_anneal), i_r, i_b,
-                 return_weights=with_normals)
-    res = dict(out)
+    shots = fidx[:, None] if fidx.dim() == 1 else fidx
+    colors = []
+    for k in range(shots.shape[1]):  # one render per shot over the same samples (weights are shared)
+        out = render(sdf, grad, color, pos, t0, t1, ray_index, offsets, counts, dirs, shots[:, k].contiguous(),
+                     proj.K, proj.W, pat, proj.store, field.inv_s(), float(cos_anneal), i_r, i_b,
+                     return_weights=with_normals and k == 0)
+        if k == 0:
+            res = dict(out)
+        colors.append(out["color"])
+    if fidx.dim() == 2:
+        res["color"] = torch.stack(colors, 1)
+    out = res
     res["grad"], res["curv"], res["n_samples"] = grad, curv, s
     if with_normals:
         w = out["weights"].detach()

@@ -19,7 +19,8 @@ from fastneus.field.renderer import render_rays
 from fastneus.kernels.occupancy import OccupancyGrid
 from fastneus.train.checkpoint import CKPT_NAME, load_checkpoint, restore, save_checkpoint  # noqa: F401 (re-export)
 from fastneus.train.guard import finite_step
-from fastneus.sampling import RayBank, build_projection
+from fastneus.multishot import make_bank
+from fastneus.sampling import build_projection
 
 
 def resolve_masks(scene, frames: list[int], cfg: Config) -> tuple[bool, str]:
@@ -87,15 +88,16 @@ class Trainer:
             raise FastneusError(f"frame indices {bad or '[]'} out of range 0..{n - 1}", field="frames")
         self.masks_used, self.masks_note = resolve_masks(scene, self.frames, cfg)
         want_bg = not self.masks_used and cfg.bg_prior != "off" and cfg.bg_weight > 0
-        self.bank = RayBank(scene, self.frames, self.device, load_masks=self.masks_used,
-                            brightness_cdf=cfg.bright_fraction > 0,
-                            background=cfg.background if want_bg else None, bg_tolerance=cfg.bg_tolerance)
-        if self.bank.empty_masks:  # all-zero masks: the object is outside those views (or a wrong file)
+        # multi-shot viewpoints (e.g. Gray code) share one ray per pixel across their shots (fastneus.multishot)
+        self.bank = make_bank(scene, self.frames, self.device, cfg, load_masks=self.masks_used,
+                              brightness_cdf=cfg.bright_fraction > 0,
+                              background=cfg.background if want_bg else None, bg_tolerance=cfg.bg_tolerance)
+        if getattr(self.bank, "empty_masks", None):  # all-zero masks: the object is outside those views (or a wrong file)
             self.masks_note += f"; warning: empty (all-zero) mask {', '.join(self.bank.empty_masks)}"
         self.bg_used, self.bg_note = resolve_bg_prior(cfg, self.masks_used, self.bank.bg_fraction)
         self.proj = build_projection(scene, self.frames, self.device)
         self.field = SDFField(cfg, self.device)
-        self.field.init_color_bias(self.bank.rgb.float().mean(0) / 255.0)
+        self.field.init_color_bias(self.bank.mean_rgb())
         self.grid = OccupancyGrid(cfg.occ_resolution, self.device)
         self.seen = None
         if cfg.min_views > 0:
@@ -216,7 +218,9 @@ class Trainer:
         self.empty_steps = 0
         # the camera clips at 1: a rendered value above it is a saturated pixel, not an error
         # (unclipped, bright pattern pixels would pull i_r down on Normal-light scenes)
-        pred = (out["color"] + c.background * (1.0 - out["opacity"])[:, None]).clamp(max=1.0)
+        bgc = c.background * (1.0 - out["opacity"])
+        # [B, 3], or [B, K, 3] with K shots per ray (multi-shot)
+        pred = (out["color"] + bgc.view(-1, *([1] * (out["color"].dim() - 1)))).clamp(max=1.0)
         err = (pred - batch["rgb"]).abs()
         loss_rgb = err.mean()
         grad = out["grad"]
@@ -255,6 +259,14 @@ class Trainer:
         c = self.cfg
         save_config(c, self.out / "config.yaml")
         self.prime()
+        from fastneus.geometry_init import initialise_geometry
+
+        t0 = time.perf_counter()
+        note = initialise_geometry(self)  # e.g. from decoded Gray code; its time counts as training
+        if note:
+            self.elapsed += time.perf_counter() - t0
+            if self.console is not None:
+                self.console.print(note)
         logf = open(self.out / "log.jsonl", "a")
         last = {}
         samples_total, t_window, steps_window = 0, time.perf_counter(), 0

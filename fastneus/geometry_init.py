@@ -1,0 +1,172 @@
+"""Geometry initialisation from the pattern itself: start the SDF at the decoded surface.
+
+When every training viewpoint holds a complete Gray-code sequence, the classical decoder
+(:mod:`fastneus.baselines.graycode`) gives a depth map per viewpoint in a fraction of a second.
+Fitting the SDF to those points first (zero at the points, positive just in front of them along
+the camera ray, negative just behind, unit gradient) replaces the sphere initialisation, so the
+photometric training refines a surface that is already right to a projector pixel instead of
+carving it out of a sphere. Coarse-to-fine is switched off then: it exists to find the topology
+from a sphere, and it would hide the fine levels the fit just set.
+
+``init_geometry``: ``auto`` (decode when every training viewpoint is a decodable Gray-code
+sequence, else the sphere), ``decode`` (required; error otherwise) or ``sphere``. The fit's time
+counts toward the run's training time.
+"""
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import torch
+
+from fastneus.errors import FastneusError
+
+
+def decodable_views(scene, frames: list[int]) -> list[list[int]] | None:
+    """Frame indices per viewpoint when every viewpoint of ``frames`` is one projector's full
+    Gray-code sequence (and nothing else), else None."""
+    from fastneus.export.depth import view_frames
+    from fastneus.patterns import gray_bits
+
+    groups = list(view_frames(scene, frames).values())
+    for g in groups:
+        pids = {pid for i in g for pid, _ in scene.active_projectors(i)}
+        if len(pids) != 1:
+            return None
+        pj = scene.projectors[next(iter(pids))]
+        if len(g) != gray_bits(pj.width) + gray_bits(pj.height):
+            return None
+        if any(len(scene.active_projectors(i)) != 1 for i in g):
+            return None
+    return groups
+
+
+def decoded_points(scene, groups: list[list[int]], max_free: int = 200_000) -> dict[str, np.ndarray]:
+    """What the Gray-code decoder says about space, over all viewpoints (world units).
+
+    Returns:
+        dict: ``points`` [N, 3] triangulated surface points, ``dirs`` [N, 3] their unit camera-ray
+        directions, ``origins`` [N, 3] their camera centres; ``bg_origins`` / ``bg_dirs`` [M, 3] rays
+        of background pixels (black in every shot: nothing there, the whole ray is free space).
+    """
+    from fastneus.baselines.graycode import graycode_depth
+
+    out: dict[str, list] = {"points": [], "dirs": [], "origins": [], "bg_origins": [], "bg_dirs": []}
+    rng = np.random.default_rng(0)
+    for g in groups:
+        z = graycode_depth(scene, g)
+        i = g[0]
+        K = scene.frame_camera(i).K
+        c2w = scene.cam_to_world(i)
+        dark = np.ones(z.shape, bool)
+        for j in g:
+            dark &= scene.image(j).max(axis=2) <= 2
+        for key, (v, u) in (("", np.nonzero(np.isfinite(z))), ("bg_", np.nonzero(dark))):
+            if key and v.size > max_free // len(groups):
+                sel = rng.choice(v.size, max_free // len(groups), replace=False)
+                v, u = v[sel], u[sel]
+            d_cam = np.linalg.inv(K) @ np.stack([u + 0.5, v + 0.5, np.ones(u.size)])
+            d = (c2w[:3, :3] @ d_cam).T
+            if not key:
+                out["points"].append((c2w[:3, :3] @ (d_cam * z[v, u]) + c2w[:3, 3:4]).T)
+            out[key + "dirs"].append(d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12))
+            out[key + "origins"].append(np.broadcast_to(c2w[:3, 3], d.shape))
+    return {k: np.concatenate(v) if v else np.zeros((0, 3)) for k, v in out.items()}
+
+
+def _sphere_chord(o: torch.Tensor, d: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Entry and exit distances of rays (unit d) through the unit sphere (entry >= 0; exit < entry = miss)."""
+    b = (o * d).sum(-1)
+    c = (o * o).sum(-1) - 1.0
+    disc = (b * b - c).clamp_min(0).sqrt()
+    return (-b - disc).clamp_min(0), -b + disc
+
+
+def fit_sdf_to_points(field, points: torch.Tensor, dirs: torch.Tensor, origins: torch.Tensor, steps: int,
+                      bg_origins: torch.Tensor | None = None, bg_dirs: torch.Tensor | None = None,
+                      lr: float = 1e-2, batch: int = 8192, offset: float = 0.02,
+                      generator: torch.Generator | None = None) -> float:
+    """Fit the field's SDF to surface points seen along camera rays (normalised space).
+
+    Loss per step on a random batch: |f(p)| (on the surface) + relu(offset/2 - f(p - offset d)) (just in
+    front is outside) + relu(f(p + offset d / 2) + offset/4) (just behind is inside) + relu(-f(q)) for q
+    uniform on the free part of the ray (camera to surface; whole chord for background rays) +
+    0.1 (|grad f| - 1)^2 on a quarter batch of surface and as many uniform points.
+
+    Args:
+        field: :class:`fastneus.field.model.SDFField` (its own optimiser is not touched).
+        points, dirs, origins: [N, 3] float32 surface points, unit ray directions, camera centres.
+        steps: Adam steps. bg_origins, bg_dirs: [M, 3] background rays (optional).
+        lr: learning rate. batch: points per step. offset: normalised distance.
+    Returns:
+        the last loss.
+    """
+    params = [field.table] + list(field.sdf_net.parameters())
+    opt = torch.optim.Adam(params, lr=lr, betas=(0.9, 0.99), eps=1e-15)
+    n = points.shape[0]
+    dev = points.device
+    t_surf = (points - origins).norm(dim=-1)
+    t_in, _ = _sphere_chord(origins, dirs)
+    nb = 0 if bg_dirs is None else bg_dirs.shape[0]
+    if nb:
+        bg_in, bg_out = _sphere_chord(bg_origins, bg_dirs)
+        hit = bg_out > bg_in
+        bg_origins, bg_dirs, bg_in, bg_out = bg_origins[hit], bg_dirs[hit], bg_in[hit], bg_out[hit]
+        nb = bg_dirs.shape[0]
+    loss = torch.zeros(())
+    rand = lambda *s: torch.rand(*s, device=dev, generator=generator)  # noqa: E731
+    for _ in range(steps):
+        m = min(batch, n)
+        idx = torch.randint(0, n, (m,), device=dev, generator=generator)
+        p, d = points[idx], dirs[idx]
+        lo, hi = t_in[idx], (t_surf[idx] - offset).clamp_min(t_in[idx])
+        q = [origins[idx] + d * (lo + rand(m) * (hi - lo))[:, None]]
+        if nb:
+            j = torch.randint(0, nb, (m // 2,), device=dev, generator=generator)
+            q.append(bg_origins[j] + bg_dirs[j] * (bg_in[j] + rand(m // 2) * (bg_out[j] - bg_in[j]))[:, None])
+        q = torch.cat(q)
+        f = field.sdf(torch.cat([p, p - offset * d, p + 0.5 * offset * d, q]))
+        f0, f_out, f_in, f_free = f[:m], f[m:2 * m], f[2 * m:3 * m], f[3 * m:]
+        xr = rand(m // 4, 3) * 2 - 1
+        _, _, g, _ = field.sdf_and_grad(torch.cat([p[: m // 4], xr]))
+        loss = (f0.abs().mean() + torch.relu(0.5 * offset - f_out).mean() + torch.relu(f_in + 0.25 * offset).mean()
+                + torch.relu(-f_free).mean() + 0.1 * ((g.norm(dim=-1) - 1) ** 2).mean())
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        opt.step()
+    return float(loss.detach())
+
+
+def initialise_geometry(trainer) -> str | None:
+    """Apply ``init_geometry`` to a fresh trainer (step 0). Returns a one-line note, or None when the
+    sphere initialisation stays (nothing to say)."""
+    cfg = trainer.cfg
+    mode = getattr(cfg, "init_geometry", "sphere")
+    if mode == "sphere" or trainer.step != 0:
+        return None
+    groups = decodable_views(trainer.scene, trainer.frames)
+    if groups is None:
+        if mode == "decode":
+            raise FastneusError("init_geometry=decode needs every training viewpoint to be one projector's "
+                                "complete Gray-code sequence", field="init_geometry")
+        return None
+    t = time.perf_counter()
+    scene = trainer.scene
+    dec = decoded_points(scene, groups)
+    if len(dec["points"]) < 100:
+        return f"geometry init: {mode} -> sphere (the Gray-code decoder found only {len(dec['points'])} points)"
+    b = scene.bounds
+    norm = lambda x: (x - np.asarray(b.center)) / float(b.radius)  # noqa: E731
+    pn = norm(dec["points"])
+    keep = np.linalg.norm(pn, axis=1) < 0.999
+    f32 = dict(dtype=torch.float32, device=trainer.device)
+    tt = lambda a: torch.tensor(np.ascontiguousarray(a), **f32)  # noqa: E731
+    P, D, O = tt(pn[keep]), tt(dec["dirs"][keep]), tt(norm(dec["origins"][keep]))
+    cfg.c2f_start_levels = 0  # see the module docstring; recorded in the run's config
+    trainer.field.set_progress(0.0)
+    batch = int(min(8192, max(1024, cfg.target_samples // 8)))
+    loss = fit_sdf_to_points(trainer.field, P, D, O, cfg.init_geometry_steps, bg_origins=tt(norm(dec["bg_origins"])),
+                             bg_dirs=tt(dec["bg_dirs"]), lr=cfg.lr, batch=batch, generator=trainer.gen)
+    return (f"geometry init: {mode} -> decoded Gray code ({P.shape[0]} points from {len(groups)} view(s), "
+            f"{cfg.init_geometry_steps} fit steps, loss {loss:.4f}, {time.perf_counter() - t:.1f} s of the budget); "
+            "coarse-to-fine off")

@@ -1,0 +1,239 @@
+"""The paper's pattern study: Gray code, grid, colourful line (and cross lasers) at 1, 3, 10 viewpoints,
+fastneus against the classical Gray-code decoder (issue 11, parts 4 and 5).
+
+    python scripts/pattern_study.py [--device cuda|cpu] [--patterns graycode,grid,colorline,crosslaser]
+                                    [--views 1,3,10] [--budget 10] [--size 400] [--shape toy]
+                                    [--out DIR] [--no-md] [key=value ...]
+
+Scenes (``fastneus synth``, synthesised once per pattern at 10 viewpoints; a run on V viewpoints
+uses V of them spread over the orbit): the paper's pattern-study rig, one projector with a 0.6 m
+baseline, Normal light, for ``graycode`` (20 shots per viewpoint), ``grid`` and ``colorline``
+(one shot each); ``crosslaser`` is the project's default rig instead: 4 red/green cross-laser
+projectors at +-0.2 / +-0.6 m in Dark light (only the laser curves constrain the surface).
+Object ~2 m across at 4 m.
+
+Methods: fastneus with the device's default preset (``oneshot`` on one viewpoint, with the CPU
+one-shot priors on CPU as ``fastneus oneshot`` does; ``fewview`` / ``cpu-quick`` otherwise) for a
+training budget of ``--budget`` seconds; for Gray code also the classical baseline (per-pixel
+threshold decoding + ray/column-plane triangulation + epipolar row check, numpy), timed from
+reading the photos to the depth maps.
+
+Metric (``fastneus.export.depth``): on every used viewpoint, the mesh ray-cast (fastneus) or the
+decoded depth map (baseline) against the ground-truth depth of the visible surface: mean absolute
+depth error (mm, % of depth) over pixels where both have a surface, the share of all GT pixels
+within 1% of depth (holes count as misses) and the coverage; for one-shot frames also on the
+pattern-lit pixels. Rows stream to ``OUT/pattern-study-<device>.jsonl`` (a re-run skips rows
+already there, so the study can be run in parts with the same ``--out``); the table goes to
+``.md``/``.json`` and a figure (per pattern: photo, depth, depth-error map; 0-1 % of depth on a
+turbo ramp, magenta = missed surface) to ``OUT/pattern-study-<device>.png``; with docs updating
+on, the section ``pattern-study-<device>`` of docs/BENCHMARKS.md and docs/benchmarks/.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import shutil
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from benchutil import ROOT, git_rev, machine, md_table, update_section, write_json
+
+N_SCENE_VIEWS = 10
+
+
+def make_scene(cache: Path, pattern: str, size: int, shape: str, device: str):
+    from fastneus.data import Scene
+    from fastneus.synth import synthesize
+
+    d = cache / f"{shape}-{pattern}-{N_SCENE_VIEWS}v-{size}"
+    if not (d / "scene.json").is_file():
+        rig = dict(baselines=None, illum="dark") if pattern == "crosslaser" else dict(baselines=(0.6,), illum="normal")
+        synthesize(d, shape=shape, views=N_SCENE_VIEWS, size=(size, size), pattern=pattern, seed=0, device=device,
+                   progress=False, contact_sheet=False, **rig)
+    return Scene.load(d)
+
+
+def pick_views(n: int) -> list[int]:
+    """``n`` of the scene's viewpoints, spread over the orbit (1 -> [0], 3 -> [0, 3, 7], 10 -> all)."""
+    return sorted({int(round(k * N_SCENE_VIEWS / n)) % N_SCENE_VIEWS for k in range(n)})
+
+
+def run_fastneus(scene, views: list[int], device: str, budget: float, extra: list[str], out: Path) -> tuple[dict, object]:
+    from fastneus.config import load_config
+    from fastneus.pipeline import train_scene
+    from fastneus.train.cli import ONESHOT_CPU
+
+    frames = [i for v in views for i in scene.views()[v]]
+    gpu = device.startswith("cuda")
+    base = {"frames": frames}
+    if len(views) == 1:
+        preset = "oneshot" if gpu else "cpu-quick"
+        if not gpu:
+            base.update(ONESHOT_CPU)
+    else:
+        preset = "fewview" if gpu else "cpu-quick"
+    cfg = load_config(preset, [f"time_budget={budget}"] + list(extra), base=base)
+    t = time.perf_counter()
+    trainer, m = train_scene(scene, cfg, out, device)
+    m["wall_s"] = time.perf_counter() - t
+    m["preset"] = preset
+    return m, trainer
+
+
+def rec_depth(run: Path, scene, frame: int, device: str) -> np.ndarray:
+    import trimesh
+
+    from fastneus.export.depth import mesh_depth
+
+    mesh = trimesh.load(run / "mesh.ply", force="mesh", process=False)
+    cam = scene.frame_camera(frame)
+    return mesh_depth(mesh.vertices, mesh.faces, cam.K, scene.cam_to_world(frame), cam.width, cam.height, device)
+
+
+def figure(panels: list[tuple[str, list[tuple[str, np.ndarray]]]], tile: int = 220) -> np.ndarray:
+    """Rows of labelled tiles: [(row label, [(tile label, uint8 [H, W, 3]), ...]), ...]."""
+    import cv2
+
+    ncol = max(len(t) for _, t in panels)
+    rows = []
+    for label, tiles in panels:
+        cells = []
+        for name, img in tiles + [("", np.zeros((tile, tile, 3), np.uint8))] * (ncol - len(tiles)):
+            im = cv2.resize(np.ascontiguousarray(img), (tile, tile), interpolation=cv2.INTER_AREA)
+            for text, y in ((f"{label}: {name}" if name and not cells else name, 16),):
+                cv2.putText(im, text, (5, y), cv2.FONT_HERSHEY_SIMPLEX, 0.42, (0, 0, 0), 3, cv2.LINE_AA)
+                cv2.putText(im, text, (5, y), cv2.FONT_HERSHEY_SIMPLEX, 0.42, (255, 255, 255), 1, cv2.LINE_AA)
+            cells += [im, np.full((tile, 3, 3), 80, np.uint8)]
+        rows += [np.concatenate(cells[:-1], 1), np.full((3, ncol * (tile + 3) - 3, 3), 80, np.uint8)]
+    return np.concatenate(rows[:-1], 0)
+
+
+KEYS = ["depth_err_mm", "depth_err_pct", "depth_within_1pct", "depth_coverage", "depth_lit_err_pct",
+        "depth_lit_within_1pct", "depth_unlit_err_pct", "visible_gt2rec_mm", "chamfer_gt2rec_mm"]
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
+    ap.add_argument("--patterns", default="graycode,grid,colorline,crosslaser")
+    ap.add_argument("--views", default="1,3,10")
+    ap.add_argument("--budget", type=float, default=None, help="training seconds (default 10 on GPU, 60 on CPU)")
+    ap.add_argument("--size", type=int, default=400)
+    ap.add_argument("--shape", default="toy")
+    ap.add_argument("--out", default="/tmp/fastneus-pattern-study")
+    ap.add_argument("--no-md", action="store_true", help="do not update docs/BENCHMARKS.md and docs/benchmarks/")
+    ap.add_argument("overrides", nargs="*", help="key=value for every fastneus run (tuning only)")
+    args = ap.parse_args()
+
+    gpu = args.device.startswith("cuda")
+    kind = "cuda" if gpu else "cpu"
+    budget = args.budget if args.budget is not None else (10.0 if gpu else 60.0)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    jsonl = out / f"pattern-study-{kind}.jsonl"
+    done = set()
+    if jsonl.is_file():
+        for line in jsonl.read_text().splitlines():
+            r = json.loads(line)
+            done.add((r["pattern"], r["views"], r["method"]))
+    from fastneus.baselines.graycode import baseline_depth_metrics, graycode_baseline
+    from fastneus.export.depth import depth_image, error_map
+
+    for pattern in args.patterns.split(","):
+        scene = make_scene(out / "scenes", pattern, args.size, args.shape, args.device)
+        for nv in (int(v) for v in args.views.split(",")):
+            views = pick_views(nv)
+            frames = [i for v in views for i in scene.views()[v]]
+            first = frames[0]
+            run = out / "runs" / f"{kind}-{pattern}-{nv}v"
+            tiles = []
+            if (pattern, nv, "fastneus") not in done:
+                m, _ = run_fastneus(scene, views, args.device, budget, args.overrides, run)
+                row = {"pattern": pattern, "views": nv, "method": "fastneus", "preset": m["preset"],
+                       "time_s": m["train_seconds"], "steps": m["steps"], **{k: m.get(k) for k in KEYS}}
+                with open(jsonl, "a") as f:
+                    f.write(json.dumps(row) + "\n")
+                print(json.dumps(row), flush=True)
+            if pattern == "graycode" and (pattern, nv, "baseline") not in done:
+                depths, sec = graycode_baseline(scene, frames)
+                m = baseline_depth_metrics(scene, depths)
+                row = {"pattern": pattern, "views": nv, "method": "Gray-code decode + triangulation",
+                       "time_s": sec, **{k: m.get(k) for k in KEYS}}
+                with open(jsonl, "a") as f:
+                    f.write(json.dumps(row) + "\n")
+                print(json.dumps(row), flush=True)
+                np.save(out / "runs" / f"{kind}-{pattern}-{nv}v-baseline-depth.npy", depths[first])
+            # figure tiles for this cell (from what is on disk, so a resumed study still draws it)
+            if nv == 1 and (run / "mesh.ply").is_file():
+                gt = scene.gt_depth(first)
+                lo, hi = np.percentile(gt[gt > 0], [1, 99])
+                photo = scene.image(frames[min(len(frames) - 1, 4)])  # a mid-sequence Gray-code plane
+                rec = rec_depth(run, scene, first, args.device)
+                tiles = [("photo", photo), ("GT depth", depth_image(gt, lo, hi)),
+                         ("fastneus depth", depth_image(rec, lo, hi)), ("fastneus error", error_map(rec, gt))]
+                bp = out / "runs" / f"{kind}-{pattern}-{nv}v-baseline-depth.npy"
+                if bp.is_file():
+                    b = np.load(bp)
+                    tiles += [("decoder depth", depth_image(b, lo, hi)), ("decoder error", error_map(b, gt))]
+                np.save(out / "runs" / f"{kind}-{pattern}-tiles.npy", np.stack([t for _, t in tiles]))
+                (out / "runs" / f"{kind}-{pattern}-tiles.json").write_text(json.dumps([n for n, _ in tiles]))
+
+    rows = [json.loads(line) for line in jsonl.read_text().splitlines() if line.strip()]
+    order = {p: k for k, p in enumerate(["graycode", "grid", "colorline", "crosslaser"])}
+    rows.sort(key=lambda r: (order.get(r["pattern"], 9), r["views"], r["method"] != "fastneus"))
+    cols = ["pattern", "views", "method", "time_s", "depth_err_mm", "depth_err_pct", "depth_within_1pct",
+            "depth_coverage", "depth_lit_err_pct", "depth_unlit_err_pct", "visible_gt2rec_mm"]
+    table = md_table([{k: v for k, v in r.items() if v is not None} for r in rows], cols)
+    # side by side: fastneus vs the decoder on Gray code at equal views
+    cmp_rows = []
+    for nv in sorted({r["views"] for r in rows if r["pattern"] == "graycode"}):
+        f = next((r for r in rows if r["pattern"] == "graycode" and r["views"] == nv and r["method"] == "fastneus"), None)
+        b = next((r for r in rows if r["pattern"] == "graycode" and r["views"] == nv and r["method"] != "fastneus"), None)
+        if f and b:
+            better = f["depth_err_pct"] < b["depth_err_pct"]
+            cmp_rows.append({"views": nv, "fastneus % / within 1%": f"{f['depth_err_pct']:.3g} / {f['depth_within_1pct']:.3g}",
+                             "decoder % / within 1%": f"{b['depth_err_pct']:.3g} / {b['depth_within_1pct']:.3g}",
+                             "fastneus s": f"{f['time_s']:.3g}", "decoder s": f"{b['time_s']:.3g}",
+                             "more accurate": "fastneus" if better else "decoder"})
+    cmp = md_table(cmp_rows, ["views", "fastneus % / within 1%", "decoder % / within 1%", "fastneus s", "decoder s",
+                              "more accurate"]) if cmp_rows else ""
+    print(table)
+    print(cmp)
+    panels = []
+    for p in sorted(order, key=order.get):
+        tp = out / "runs" / f"{kind}-{p}-tiles.npy"
+        if tp.is_file():
+            names = json.loads((out / "runs" / f"{kind}-{p}-tiles.json").read_text())
+            panels.append((p, list(zip(names, np.load(tp)))))
+    fig_path = None
+    if panels:
+        from fastneus.patterns import write_png
+
+        fig_path = out / f"pattern-study-{kind}.png"
+        write_png(fig_path, figure(panels))
+    write_json(out / f"pattern-study-{kind}.json", {"machine": machine(args.device), "git": git_rev(), "budget": budget,
+                                                   "size": args.size, "shape": args.shape, "rows": rows})
+    ov = (" " + " ".join(args.overrides)) if args.overrides else ""
+    head = (f"### Pattern study ({kind.upper()}): {args.shape}, {args.size}x{args.size}, {budget:g} s of training\n\n"
+            f"Machine: {machine(args.device)}; commit {git_rev()}. Command: `python scripts/pattern_study.py "
+            f"--device {args.device} --size {args.size} --budget {budget:g} --shape {args.shape}{ov}`. One projector "
+            "at 0.6 m, Normal light (crosslaser: 4 projectors, Dark); 1, 3, 10 viewpoints of one orbit; depth error "
+            "of the visible surface on every used viewpoint (mesh ray-cast vs GT depth; % of depth; within 1% counts "
+            "holes as misses; lit/unlit = pattern-lit pixels of one-shot frames). time_s: training seconds "
+            "(fastneus) or decoding + triangulation seconds (decoder). One run per row.\n\n")
+    text = head + table + ("\nGray code, fastneus against the decoder at equal viewpoints:\n\n" + cmp if cmp else "")
+    (out / f"pattern-study-{kind}.md").write_text(text)
+    if not args.no_md:
+        if fig_path is not None:
+            dst = ROOT / "docs" / "benchmarks" / fig_path.name
+            shutil.copyfile(fig_path, dst)
+            text += (f"\n![pattern study, one viewpoint: photo, GT depth, fastneus depth and error, decoder depth "
+                     f"and error](benchmarks/{fig_path.name})\n")
+        update_section(ROOT / "docs" / "BENCHMARKS.md", f"pattern-study-{kind}", text)
+
+
+if __name__ == "__main__":
+    main()
