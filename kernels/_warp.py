@@ -104,8 +104,9 @@ def _cached(module, device: str) -> bool | None:
 
         m = get_module(module.__name__)
         dev = runtime.get_device(device)
-        folder = os.path.join(wp.config.kernel_cache_dir, m.get_module_identifier())
-        return os.path.isfile(os.path.join(folder, m._get_compile_output_name(dev)))
+        bd = 1 if dev.is_cpu else None  # CPU launches build a block_dim=1 variant (its own hash)
+        folder = os.path.join(wp.config.kernel_cache_dir, m.get_module_identifier(bd))
+        return os.path.isfile(os.path.join(folder, m._get_compile_output_name(dev, block_dim=bd)))
     except Exception:  # noqa: BLE001 - private API of one Warp version; only used for a message
         return None
 
