@@ -1,0 +1,200 @@
+"""The default path (issue 9): schedules as fractions of the run, masks when present, the
+background prior and the seen-volume limit against floaters, and the shapes of the matrix."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from fastneus.config import Config, load_config
+from fastneus.errors import FastneusError
+
+
+# ---------------------------------------------------------------- schedules are fractions
+def test_fractions_validated_and_legacy_steps_converted(tmp_path):
+    with pytest.raises(FastneusError, match="c2f_frac"):
+        load_config(None, ["c2f_frac=1.5"])
+    # a run saved by an earlier version (steps) keeps its meaning as a share of its own length
+    from fastneus.config import config_from_dict
+
+    cfg = config_from_dict({"steps": 1000, "occ_warmup_steps": 250, "warmup_steps": 50, "c2f_start_levels": 4,
+                            "levels": 16, "c2f_steps_per_level": 25}, "old/config.yaml")
+    assert cfg.occ_warmup_frac == pytest.approx(0.25) and cfg.warmup_frac == pytest.approx(0.05)
+    assert cfg.c2f_frac == pytest.approx(12 * 25 / 1000)
+    assert not hasattr(cfg, "occ_warmup_steps")
+    # a hand-written YAML with an old key gets one line pointing at the new one
+    f = tmp_path / "old.yaml"
+    f.write_text("occ_warmup_steps: 250\n")
+    with pytest.raises(FastneusError, match="occ_warmup_frac"):
+        load_config(str(f))
+
+
+@pytest.mark.parametrize("preset", ["fewview", "cpu-quick", "oneshot", "paper"])
+def test_presets_have_no_step_schedules(preset):
+    cfg = load_config(preset)
+    for k in ("occ_warmup_frac", "c2f_frac", "warmup_frac", "color_warmup_frac", "cos_anneal_frac",
+              "illum_warmup_frac", "inv_s_floor_frac", "bg_start_frac"):
+        assert 0.0 <= getattr(cfg, k) <= 1.0, k
+
+
+def test_coarse_to_fine_and_floor_follow_progress_not_steps():
+    from fastneus.field.model import SDFField
+
+    cfg = load_config("cpu-quick", ["c2f_start_levels=3", "levels=8", "c2f_frac=0.4"])
+    field = SDFField(cfg, "cpu")
+    seen = []
+    for p in (0.0, 0.1, 0.2, 0.39, 0.4, 1.0):
+        field.set_progress(p)
+        seen.append((field.active_levels, field.inv_s_floor))
+    levels = [s[0] for s in seen]
+    floors = [s[1] for s in seen]
+    assert levels[0] == 3 and levels[-2] == 8 and levels[-1] == 8
+    assert levels == sorted(levels) and 3 < levels[2] < 8
+    assert floors == sorted(floors) and floors[0] == pytest.approx(cfg.inv_s_floor_start)
+
+
+def test_same_stages_at_any_budget(tmp_path):
+    """Progress is the share of time_budget when one is set, so stages do not depend on speed."""
+    from fastneus.train.trainer import Trainer
+
+    class _T:  # Trainer.progress/finished read only cfg, step and elapsed
+        progress = Trainer.progress
+        finished = Trainer.finished
+        stop_signal = None
+
+    t = _T()
+    t.cfg = Config(steps=1000, time_budget=10.0)
+    t.step, t.elapsed = 5, 5.0
+    assert t.progress() == pytest.approx(0.5) and not t.finished()
+    t.elapsed = 10.0
+    assert t.progress() == 1.0 and t.finished()
+    t.cfg = Config(steps=200, time_budget=0.0)
+    t.step = 50
+    assert t.progress() == pytest.approx(0.25) and not t.finished()
+
+
+# ---------------------------------------------------------------- masks and background
+class _Frame:
+    def __init__(self, mask):
+        self.mask = mask
+
+
+class _Scene:
+    def __init__(self, masks):
+        self.frames = [_Frame(m) for m in masks]
+
+
+def test_masks_auto_on_only_when_every_frame_has_one():
+    from fastneus.train.trainer import resolve_masks
+
+    all_m, some_m = _Scene(["a.png", "b.png"]), _Scene(["a.png", None])
+    used, note = resolve_masks(all_m, [0, 1], Config())
+    assert used and "auto -> on" in note
+    used, note = resolve_masks(some_m, [0, 1], Config())
+    assert not used and "1/2" in note
+    assert not resolve_masks(all_m, [0, 1], Config(masks="off"))[0]
+    assert not resolve_masks(all_m, [0, 1], Config(mask_weight=0.0))[0]
+    with pytest.raises(FastneusError, match="masks"):
+        resolve_masks(some_m, [0, 1], Config(masks="on"))
+
+
+def test_background_prior_auto():
+    from fastneus.train.trainer import resolve_bg_prior
+
+    assert not resolve_bg_prior(Config(), True, 0.9)[0]           # masks win
+    assert resolve_bg_prior(Config(), False, 0.4)[0]               # a dark room
+    assert not resolve_bg_prior(Config(), False, 0.01)[0]          # a real backdrop
+    assert resolve_bg_prior(Config(bg_prior="on"), False, 0.0)[0]
+    assert not resolve_bg_prior(Config(bg_prior="off"), False, 0.9)[0]
+
+
+# ---------------------------------------------------------------- seen volume
+class _Cam:
+    def __init__(self, f):
+        self.K = np.array([[f, 0, 16.0], [0, f, 16.0], [0, 0, 1]])
+        self.width = self.height = 32
+
+
+class _RigScene:
+    """Narrow cameras at x = -0.3 and x = +0.3 on z = -3, looking along +z (world = normalised)."""
+
+    def __init__(self, xs=(-0.3, 0.3), f=100.0):
+        from types import SimpleNamespace
+
+        self.xs, self.cam = xs, _Cam(f)
+        self.frames = [SimpleNamespace(view=i) for i in range(len(xs))]
+        self.bounds = SimpleNamespace(radius=1.0)
+
+    def normalisation(self):
+        return np.eye(4)
+
+    def frame_camera(self, i):
+        return self.cam
+
+    def world_to_cam(self, i):
+        m = np.eye(4)
+        m[:3, 3] = [-self.xs[i], 0.0, 3.0]
+        return m
+
+
+def test_seen_cells_need_two_views():
+    from fastneus.visibility import seen_cells, seen_fraction
+
+    scene, r = _RigScene(), 16
+    one = seen_cells(scene, [0], r, "cpu", min_views=2)            # a single viewpoint: one camera suffices
+    two = seen_cells(scene, [0, 1], r, "cpu", min_views=2)
+    any_ = seen_cells(scene, [0, 1], r, "cpu", min_views=1)
+    assert one.dtype == torch.bool and one.numel() == r ** 3
+    assert bool(two.le(any_).all()) and seen_fraction(two) < seen_fraction(any_) < 1.0
+
+    def cell(x, y, z):
+        i = [min(r - 1, int((v + 1) * r / 2)) for v in (x, y, z)]
+        return i[0] + r * (i[1] + r * i[2])
+
+    assert bool(two[cell(0, 0, 0)])                                 # both cameras see the centre
+    assert not bool(two[cell(0.6, 0, 0)]) and bool(any_[cell(0.6, 0, 0)])   # only the right one
+    assert not bool(any_[cell(0, 0.95, -0.9)])                      # outside both frustums
+    # frames of one viewpoint count once
+    scene.frames[1].view = 0
+    assert torch.equal(seen_cells(scene, [0, 1], r, "cpu", min_views=2), seen_cells(scene, [0], r, "cpu"))
+
+
+def test_grid_never_occupies_unseen_cells():
+    from fastneus.kernels.occupancy import OccupancyGrid
+
+    g = OccupancyGrid(8, "cpu")
+    allowed = torch.rand(8 ** 3, generator=torch.Generator().manual_seed(1)) > 0.5
+    g.set_allowed(allowed)
+    assert not bool(g.bits.bool()[~allowed].any()) and bool(g.bits.bool()[allowed].all())
+    g.update(lambda x: torch.zeros(x.shape[0]), 0.0, 0.01, warmup=True)     # warm-up: all allowed cells
+    assert torch.equal(g.bits.bool(), allowed)
+    g.update(lambda x: torch.zeros(x.shape[0]), 50.0, 0.01, threshold=0.0, backend="torch")
+    assert not bool(g.bits.bool()[~allowed].any())
+
+
+def test_mesh_has_no_surface_outside_allowed():
+    from fastneus.export.mesh import mesh_from_grid, sdf_grid
+
+    class Ball:  # a sphere of radius 0.5 plus a floater at x = 0.8
+        def sdf(self, x):
+            return torch.minimum(x.norm(dim=-1) - 0.5, (x - torch.tensor([0.8, 0.0, 0.0])).norm(dim=-1) - 0.1)
+
+    r = 8
+    lin = (torch.arange(r) + 0.5) * (2.0 / r) - 1.0
+    z, y, x = torch.meshgrid(lin, lin, lin, indexing="ij")
+    allowed = (x < 0.6).reshape(-1)                                # the floater's cells are unseen
+    full = mesh_from_grid(sdf_grid(Ball(), 48, "cpu"), np.zeros(3), 1.0, keep_fraction=0)
+    cut = mesh_from_grid(sdf_grid(Ball(), 48, "cpu", allowed=allowed), np.zeros(3), 1.0, keep_fraction=0)
+    assert full.vertices[:, 0].max() > 0.85
+    assert cut.vertices[:, 0].max() < 0.6 and len(cut.faces) > 100
+
+
+# ---------------------------------------------------------------- shapes
+def test_rock_is_a_closed_irregular_surface():
+    from fastneus.shapes import SHAPES, make_shape
+
+    assert "rock" in SHAPES
+    m = make_shape("rock")
+    assert m.is_watertight and len(m.faces) > 1000
+    r = np.linalg.norm(m.vertices - m.vertices.mean(0), axis=1)
+    assert r.std() / r.mean() > 0.05                               # not a sphere
