@@ -17,7 +17,7 @@ import numpy as np
 import torch
 
 from fastneus.errors import FastneusError
-from fastneus.sampling import RayBank, _normalised_camera
+from fastneus.sampling import RayBank, _normalised_camera, draw_pixels
 
 
 def group_views(scene, frames: list[int]) -> list[list[int]]:
@@ -148,15 +148,8 @@ class ShotBank:
             bg [n] (if ``background``), pix [n] int64 flat view-pixel index.
         """
         g = generator
-        flat = torch.randint(0, self.n_pixels, (n,), device=self.device, generator=g)
-        nb = int(n * bright_fraction) if self.cdf is not None else 0
-        if nb > 0:
-            r = torch.rand(nb, device=self.device, generator=g, dtype=torch.float64) * self.cdf[-1]
-            flat[:nb] = torch.searchsorted(self.cdf, r).clamp_max(self.n_pixels - 1)
-        view = torch.searchsorted(self.offset, flat, right=True) - 1
-        local = flat - self.offset[view]
-        w = self.wh[view, 0]
-        o, d = self.rays(view, (local % w).float() + 0.5, (local // w).float() + 0.5)
+        flat, view, col, row = draw_pixels(self, n, g, bright_fraction)
+        o, d = self.rays(view, col.float() + 0.5, row.float() + 0.5)
         if self.all_shots:
             slot = torch.arange(self.k, device=self.device).expand(n, self.k)
         else:  # k distinct-in-expectation shots among the view's own

@@ -172,16 +172,7 @@ class RayBank:
             mask [n] float (if masks), bg [n] float 1/0 (if ``background`` was given),
             pix [n] int64 flat pixel index.
         """
-        g = generator
-        flat = torch.randint(0, self.n_pixels, (n,), device=self.device, generator=g)
-        nb = int(n * bright_fraction) if self.cdf is not None else 0
-        if nb > 0:
-            r = torch.rand(nb, device=self.device, generator=g, dtype=torch.float64) * self.cdf[-1]
-            flat[:nb] = torch.searchsorted(self.cdf, r).clamp_max(self.n_pixels - 1)
-        fidx = torch.searchsorted(self.offset, flat, right=True) - 1
-        local = flat - self.offset[fidx]
-        w = self.wh[fidx, 0]
-        col, row = local % w, local // w
+        flat, fidx, col, row = draw_pixels(self, n, generator, bright_fraction)
         o, d = self.rays(fidx, col.float() + 0.5, row.float() + 0.5)
         out = {"fidx": fidx.to(torch.int32), "origins": o, "dirs": d,
                "rgb": self.rgb[flat].float() / 255.0, "pix": flat}
@@ -204,3 +195,24 @@ class RayBank:
         w, h = (int(x) for x in self.wh[a].tolist())
         off = int(self.offset[a])
         return self.rgb[off:off + w * h].reshape(h, w, 3)
+
+
+def draw_pixels(bank, n: int, generator: torch.Generator | None, bright_fraction: float):
+    """``n`` flat pixel indices of ``bank`` (uniform, except a ``bright_fraction`` share drawn in
+    proportion to brightness when ``bank.cdf`` exists) and their image, column and row.
+
+    ``bank`` has ``n_pixels``, ``cdf`` ([N] float64 or None), ``offset`` ([I+1] first pixel of
+    each image), ``wh`` ([I, 2]) and ``device`` (a RayBank: images = frames; a ShotBank: views).
+
+    Returns:
+        flat [n] int64, image [n] int64, col [n] int64, row [n] int64.
+    """
+    flat = torch.randint(0, bank.n_pixels, (n,), device=bank.device, generator=generator)
+    nb = int(n * bright_fraction) if bank.cdf is not None else 0
+    if nb > 0:
+        r = torch.rand(nb, device=bank.device, generator=generator, dtype=torch.float64) * bank.cdf[-1]
+        flat[:nb] = torch.searchsorted(bank.cdf, r).clamp_max(bank.n_pixels - 1)
+    image = torch.searchsorted(bank.offset, flat, right=True) - 1
+    local = flat - bank.offset[image]
+    w = bank.wh[image, 0]
+    return flat, image, local % w, local // w
