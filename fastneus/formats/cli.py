@@ -8,7 +8,7 @@ from pathlib import Path
 
 from fastneus.errors import FastneusError
 
-TARGETS = ("fastneus", "activeneus")
+TARGETS = ("fastneus", "activeneus", "nerf")
 
 
 def write_fastneus(scene, out: str | os.PathLike):
@@ -57,6 +57,10 @@ def _convert(args) -> int:
     scene = load_scene(args.scene)
     if args.to == "fastneus":
         write_fastneus(scene, args.out)
+    elif args.to == "nerf":
+        from fastneus.formats.nerf import write_nerf
+
+        write_nerf(scene, args.out)
     else:
         from fastneus.formats.activeneus import write_activeneus
 
@@ -102,9 +106,9 @@ def _import_calib(args) -> int:
 
 
 def register(subparsers) -> None:
-    p = subparsers.add_parser("convert", help="convert a scene between formats (fastneus, ActiveNeuS; reads NeuS too)",
+    p = subparsers.add_parser("convert", help="convert a scene between formats (fastneus, ActiveNeuS, NeRF transforms.json; reads NeuS too)",
                               description="Read a scene of any supported format and write it as TO.")
-    p.add_argument("scene", help="scene folder (fastneus, ActiveNeuS or NeuS)")
+    p.add_argument("scene", help="scene folder (fastneus, ActiveNeuS, NeuS or NeRF transforms.json)")
     p.add_argument("--to", required=True, choices=TARGETS)
     p.add_argument("--out", required=True, help="output folder")
     p.add_argument("--downscale", type=int, default=1, help="activeneus target: shrink images by this factor")
