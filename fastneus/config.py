@@ -102,6 +102,12 @@ class Config:
     illum_warmup_frac: float = 0.15    # i_r, i_b frozen for this fraction of the run (illum_init=scene)
     illum_init: str = "scene"          # scene (values from scene.json) | ones (i_r = i_b = 1)
 
+    # --- real rigs (fastneus/rig.py, docs/REAL-RIGS.md); every part off by default ---
+    pose_refine: bool = False          # learn an SE(3) correction per viewpoint camera and per projector
+    pose_anchor: bool = True           # the first training viewpoint's camera stays fixed (world frame)
+    lr_pose: float = 1e-3              # on the corrections (radians, normalised units)
+    pose_warmup_frac: float = 0.1      # corrections frozen until the geometry has formed
+
     # --- export ---
     mesh_resolution: int = 256
     render_frames: list[int] = field(default_factory=lambda: [0])
@@ -119,7 +125,7 @@ _CHOICES = {
 }
 # fractions of the run: each must lie in [0, 1]
 _FRACTIONS = ("occ_warmup_frac", "c2f_frac", "inv_s_floor_frac", "warmup_frac", "color_warmup_frac",
-              "cos_anneal_frac", "illum_warmup_frac", "bg_start_frac")
+              "cos_anneal_frac", "illum_warmup_frac", "bg_start_frac", "pose_warmup_frac")
 # keys of earlier versions (schedules in steps): converted to fractions of the run when a saved
 # config is read back (a run folder from an older fastneus must still open)
 _LEGACY_STEPS = {"occ_warmup_steps": "occ_warmup_frac", "warmup_steps": "warmup_frac",
@@ -128,7 +134,7 @@ _LEGACY_STEPS = {"occ_warmup_steps": "occ_warmup_frac", "warmup_steps": "warmup_
 _POSITIVE = {"steps", "target_samples", "init_rays", "min_rays", "max_rays", "march_step",
              "max_samples_per_ray", "occ_resolution", "occ_update_every", "levels", "features",
              "log2_table", "base_res", "finest_res", "sdf_hidden", "geo_features", "color_hidden",
-             "lr", "adam_eps", "mesh_resolution", "log_every", "save_every"}
+             "lr", "adam_eps", "mesh_resolution", "log_every", "save_every", "lr_pose"}
 
 
 def preset_names() -> list[str]:

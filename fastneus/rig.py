@@ -1,0 +1,346 @@
+"""What a real rig gets wrong, learned during training: pose corrections of cameras and
+projectors (and, in later sections of this module, projector blur and the water medium).
+
+The trainer owns one :class:`Rig`. It is inert unless a config key turns a part on
+(``pose_refine``), so the default step is unchanged. Hooks, all cheap when off:
+
+- :meth:`Rig.rays` corrects a batch's camera rays (differentiable in the corrections);
+- :meth:`Rig.projection` returns the per-frame projector data with corrected poses;
+- :meth:`Rig.param_groups` / :meth:`Rig.lr_gate` give its Adam groups and their warm-ups.
+
+Pose corrections (small-angle SE(3), ``xi = (omega, v)``: rotation vector in radians and
+translation in normalised units) act in each device's own frame::
+
+    cam_to_world'  = cam_to_world  @ E(xi_view)            (one correction per viewpoint)
+    proj_to_world' = cam_to_world' @ proj_to_cam @ E(xi_proj)   (rigged projector)
+    proj_to_world' = proj_to_world @ E(xi_proj)                  (free projector)
+
+``E(xi) = [[exp(omega^), radius * v], [0, 1]]`` (world units). The first training viewpoint
+is the anchor (``pose_anchor``): its camera stays fixed and defines the world frame, as the
+reference camera of a calibrated rig does; without an anchor the whole reconstruction could
+drift rigidly at no cost in the loss.
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from fastneus.io import atomic_write_json
+
+
+# --------------------------------------------------------------------------- SE(3) helpers
+def so3_exp(omega: torch.Tensor) -> torch.Tensor:
+    """Rotation matrices of rotation vectors (Rodrigues), smooth through 0.
+
+    Args:
+        omega: [N, 3] rotation vectors (radians), any float dtype.
+    Returns:
+        [N, 3, 3] rotation matrices.
+    """
+    th2 = (omega * omega).sum(-1, keepdim=True)[..., None]  # [N, 1, 1]
+    small = th2 < 1e-8
+    th2s = torch.where(small, torch.ones_like(th2), th2)
+    th = th2s.sqrt()
+    a = torch.where(small, 1 - th2 / 6, torch.sin(th) / th)
+    b = torch.where(small, 0.5 - th2 / 24, (1 - torch.cos(th)) / th2s)
+    x, y, z = omega.unbind(-1)
+    o = torch.zeros_like(x)
+    Kx = torch.stack([o, -z, y, z, o, -x, -y, x, o], -1).reshape(-1, 3, 3)
+    eye = torch.eye(3, dtype=omega.dtype, device=omega.device).expand_as(Kx)
+    return eye + a * Kx + b * (Kx @ Kx)
+
+
+def se3_matrix(xi: torch.Tensor, scale: float = 1.0) -> torch.Tensor:
+    """[N, 6] (omega, v) -> [N, 4, 4] rigid transforms [[exp(omega), scale * v], [0, 1]]."""
+    R = so3_exp(xi[:, :3])
+    top = torch.cat([R, scale * xi[:, 3:, None]], -1)
+    bottom = torch.zeros_like(top[:, :1, :])
+    bottom[..., 3] = 1.0
+    return torch.cat([top, bottom], 1)
+
+
+def rigid_inv(T: torch.Tensor) -> torch.Tensor:
+    """Inverse of [..., 4, 4] rigid transforms."""
+    R, t = T[..., :3, :3], T[..., :3, 3:]
+    Rt = R.transpose(-1, -2)
+    top = torch.cat([Rt, -Rt @ t], -1)
+    return torch.cat([top, T[..., 3:, :]], -2)
+
+
+def pose_error(T_est: np.ndarray, T_true: np.ndarray) -> tuple[float, float]:
+    """(rotation error in degrees, translation error in the poses' units) of two 4x4 poses."""
+    R = T_est[:3, :3].T @ T_true[:3, :3]
+    s = 0.5 * np.linalg.norm([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
+    ang = math.degrees(math.atan2(s, (np.trace(R) - 1) / 2))  # accurate at small angles too
+    return ang, float(np.linalg.norm(T_est[:3, 3] - T_true[:3, 3]))
+
+
+# --------------------------------------------------------------------------- the rig
+class Rig(torch.nn.Module):
+    """Learned rig corrections for one training run.
+
+    Args:
+        scene: the loaded scene.
+        frames: training frame indices (rows of the ray bank and of ``proj``).
+        bank: the trainer's :class:`fastneus.sampling.RayBank` (camera rotations per row).
+        proj: the trainer's :class:`fastneus.sampling.Projection` (uncorrected).
+        cfg: run config (``pose_refine``, ``pose_anchor``, ``lr_pose``, ``pose_warmup_frac``).
+        device: torch device.
+    """
+
+    def __init__(self, scene, frames: list[int], bank, proj, cfg, device):
+        super().__init__()
+        self.scene, self.frames, self.cfg = scene, list(frames), cfg
+        self.device = torch.device(device)
+        self.radius = float(scene.bounds.radius)
+        self.proj_ids = list(scene.projectors.keys())
+        views = [scene.frames[i].view for i in self.frames]
+        self.view_ids = list(dict.fromkeys(views))
+        self.register_buffer("frame_view", torch.tensor([self.view_ids.index(v) for v in views],
+                                                        dtype=torch.long, device=self.device), persistent=False)
+        self.pose_on = bool(cfg.pose_refine)
+        n_views, n_proj = len(self.view_ids), max(1, len(self.proj_ids))
+        self.cam_xi = torch.nn.Parameter(torch.zeros(n_views, 6, device=self.device))
+        self.proj_xi = torch.nn.Parameter(torch.zeros(n_proj, 6, device=self.device))
+        mask = torch.ones(n_views, 1, device=self.device)
+        if cfg.pose_anchor:
+            mask[0] = 0.0
+        self.register_buffer("cam_mask", mask, persistent=False)
+        self._bank, self._proj = bank, proj
+        if self.pose_on:
+            self._init_pose_data(scene)
+
+    # ------------------------------------------------------------------ setup
+    def _init_pose_data(self, scene) -> None:
+        F, P = len(self.frames), max(1, len(self.proj_ids))
+        W4 = torch.zeros(F, P, 4, 4, dtype=torch.float64)
+        W4[:, :, :3, :] = self._proj.W.detach().double().cpu()
+        W4[:, :, 3, 3] = 1.0
+        A = torch.eye(4, dtype=torch.float64).repeat(F, P, 1, 1)  # camera -> projector (world units)
+        rigged = torch.zeros(F, P, dtype=torch.bool)
+        for k, pid in enumerate(self.proj_ids):
+            p2c = scene.projectors[pid].proj_to_cam
+            if p2c is not None:
+                from fastneus.data.scene import rigid_inverse
+
+                A[:, k] = torch.as_tensor(rigid_inverse(p2c))
+                rigged[:, k] = True
+        self.register_buffer("W4", W4.float().to(self.device), persistent=False)
+        self.register_buffer("cam_to_proj", A.float().to(self.device), persistent=False)
+        self.register_buffer("rigged", rigged.to(self.device), persistent=False)
+
+    @property
+    def active(self) -> bool:
+        return self.pose_on
+
+    def param_groups(self, cfg) -> list[dict]:
+        """Adam groups of the enabled parts (names start with ``rig_``)."""
+        groups = []
+        if self.pose_on:
+            groups.append({"params": [self.cam_xi, self.proj_xi], "lr": cfg.lr_pose, "name": "rig_pose"})
+        return groups
+
+    def lr_gate(self, name: str, progress: float) -> float:
+        """1 when group ``name`` learns at ``progress`` of the run, 0 during its warm-up."""
+        if name == "rig_pose":
+            return 0.0 if progress < self.cfg.pose_warmup_frac else 1.0
+        return 1.0
+
+    # ------------------------------------------------------------------ corrections
+    def cam_correction(self) -> torch.Tensor:
+        """[V, 4, 4] per-viewpoint camera correction E (world units; the anchor is identity)."""
+        return se3_matrix(self.cam_xi * self.cam_mask, self.radius)
+
+    def proj_correction(self) -> torch.Tensor:
+        """[P, 4, 4] per-projector correction E (world units)."""
+        return se3_matrix(self.proj_xi, self.radius)
+
+    def rays(self, batch: dict) -> dict:
+        """Correct the camera rays of a :meth:`RayBank.sample` batch (a new dict; no-op when off).
+
+        ``d' = R_c2w dR R_c2w^T d``, ``o' = o + R_c2w v`` with ``(dR, v)`` the frame's viewpoint
+        correction (``v`` in normalised units).
+        """
+        if not self.pose_on:
+            return batch
+        f = batch["fidx"].long()
+        E = self.cam_correction()[self.frame_view]           # [F, 4, 4]
+        R = self._bank.rot                                    # [F, 3, 3] camera -> world
+        M = R @ E[:, :3, :3] @ R.transpose(1, 2)              # [F, 3, 3]
+        shift = (R @ E[:, :3, 3:]).squeeze(-1) / self.radius  # [F, 3] normalised
+        out = dict(batch)
+        out["dirs"] = torch.einsum("bij,bj->bi", M[f], batch["dirs"]).contiguous()
+        out["origins"] = (batch["origins"] + shift[f]).contiguous()
+        return out
+
+    def projection(self, proj=None):
+        """The projector data with corrected poses (``proj`` unchanged when pose refinement is off).
+
+        ``W' = E_p^-1 A E_c^-1 A^-1 W`` for a rigged projector (A = camera->projector),
+        ``W' = E_p^-1 W`` for a free one; W maps normalised points to projector coordinates.
+        """
+        proj = self._proj if proj is None else proj
+        if not self.pose_on:
+            return proj
+        Ec_inv = rigid_inv(self.cam_correction())[self.frame_view]      # [F, 4, 4]
+        Ep_inv = rigid_inv(self.proj_correction())                      # [P, 4, 4]
+        A = self.cam_to_proj
+        Ainv = rigid_inv(A)
+        P = A.shape[1]
+        Ec = Ec_inv[:, None].expand(-1, P, -1, -1)
+        moved = torch.where(self.rigged[..., None, None], A @ Ec @ Ainv @ self.W4, self.W4)
+        W = (Ep_inv[None, :P] @ moved)[..., :3, :]
+        return dataclasses.replace(proj, W=W.contiguous())
+
+    # ------------------------------------------------------------------ results
+    @torch.no_grad()
+    def refined_poses(self) -> dict:
+        """Corrected poses as numpy float64: ``cam_to_world`` per training frame, and per
+        projector ``proj_to_cam`` (rigged) or ``proj_to_world`` per training frame (free)."""
+        Ec = self.cam_correction().double().cpu().numpy()
+        Ep = self.proj_correction().double().cpu().numpy()
+        cams = [self.scene.cam_to_world(i) @ Ec[int(self.frame_view[a])] for a, i in enumerate(self.frames)]
+        projs = {}
+        for k, pid in enumerate(self.proj_ids):
+            p2c = self.scene.projectors[pid].proj_to_cam
+            if p2c is not None:
+                projs[pid] = {"proj_to_cam": p2c @ Ep[k]}
+            else:
+                projs[pid] = {"proj_to_world": [None if self.scene.frames[i].projectors.get(pid) is None
+                                                or self.scene.frames[i].projectors[pid].proj_to_world is None
+                                                else self.scene.frames[i].projectors[pid].proj_to_world @ Ep[k]
+                                                for i in self.frames]}
+        return {"cam_to_world": cams, "projectors": projs}
+
+    def refined_scene(self):
+        """A copy of the scene (training frames only) with the corrected poses."""
+        import copy
+
+        s = self.scene.subset(self.frames)
+        s.projectors = copy.deepcopy(self.scene.projectors)
+        r = self.refined_poses()
+        for a, f in enumerate(s.frames):
+            f.cam_to_world = r["cam_to_world"][a]
+        for pid, e in r["projectors"].items():
+            if "proj_to_cam" in e:
+                s.projectors[pid].proj_to_cam = e["proj_to_cam"]
+            else:
+                for a, f in enumerate(s.frames):
+                    if e["proj_to_world"][a] is not None:
+                        f.projectors[pid].proj_to_world = e["proj_to_world"][a]
+        return s
+
+    def write_json(self, out: Path) -> None:
+        """``rig.json`` in the run folder: what was learned (corrected poses, sizes of the
+        corrections), for the user to feed back into the calibration."""
+        if not self.active:
+            return
+        d: dict = {}
+        if self.pose_on:
+            r = self.refined_poses()
+            xi_c = self.cam_xi.detach().double().cpu().numpy() * self.cam_mask.cpu().numpy()
+            xi_p = self.proj_xi.detach().double().cpu().numpy()
+            d["pose"] = {
+                "anchor_view": self.view_ids[0] if self.cfg.pose_anchor else None,
+                "camera_correction_deg": [math.degrees(float(np.linalg.norm(x[:3]))) for x in xi_c],
+                "camera_correction_m": [float(np.linalg.norm(x[3:])) * self.radius for x in xi_c],
+                "projector_correction_deg": {p: math.degrees(float(np.linalg.norm(xi_p[k, :3])))
+                                             for k, p in enumerate(self.proj_ids)},
+                "projector_correction_m": {p: float(np.linalg.norm(xi_p[k, 3:])) * self.radius
+                                           for k, p in enumerate(self.proj_ids)},
+                "frames": self.frames,
+                "cam_to_world": [T.tolist() for T in r["cam_to_world"]],
+                "projectors": {p: {k: (v.tolist() if isinstance(v, np.ndarray) else
+                                       [None if x is None else x.tolist() for x in v]) for k, v in e.items()}
+                               for p, e in r["projectors"].items()},
+            }
+        atomic_write_json(Path(out) / "rig.json", d)
+
+
+def perturb_scene(scene, deg: float, metres: float, seed: int = 0, anchor: bool = True,
+                  projectors: bool = True):
+    """A copy of ``scene`` with every viewpoint's camera (except the first when ``anchor``) and
+    every projector's pose moved by a random rotation of ``deg`` degrees about a random axis
+    and a random translation of ``metres`` (seeded): a calibration that is slightly off.
+
+    Frames sharing a viewpoint move together; a rigged projector's ``proj_to_cam`` moves once.
+    """
+    import copy
+
+    rng = np.random.default_rng(seed)
+
+    def E() -> np.ndarray:
+        ax = rng.normal(size=3)
+        tr = rng.normal(size=3)
+        T = se3_matrix(torch.tensor(np.r_[ax / np.linalg.norm(ax) * math.radians(deg),
+                                           tr / np.linalg.norm(tr) * metres][None]), 1.0)[0].numpy()
+        return T
+
+    s = copy.deepcopy(scene)
+    views = list(dict.fromkeys(f.view for f in s.frames))
+    moves = {v: (np.eye(4) if anchor and j == 0 else E()) for j, v in enumerate(views)}
+    for f in s.frames:
+        f.cam_to_world = f.cam_to_world @ moves[f.view]
+    if projectors:
+        for pid, pj in s.projectors.items():
+            Ep = E()
+            if pj.proj_to_cam is not None:
+                pj.proj_to_cam = pj.proj_to_cam @ Ep
+            else:
+                for f in s.frames:
+                    fp = f.projectors.get(pid)
+                    if fp is not None and fp.proj_to_world is not None:
+                        fp.proj_to_world = fp.proj_to_world @ Ep
+    return s
+
+
+def pose_errors(refined, truth, frames: list[int], anchor: bool = True) -> dict:
+    """Mean / max rotation (deg) and translation (mm) errors of refined vs true poses.
+
+    Args:
+        refined: scene with the poses to judge (frames in ``frames`` order, as
+            :meth:`Rig.refined_scene` returns, or a full scene indexed like ``truth``).
+        truth: the scene with the exact poses.
+        frames: training frame indices into ``truth``.
+    """
+    full = len(refined.frames) == len(truth.frames)
+    cr, ct = [], []
+    first_view = truth.frames[frames[0]].view
+    for a, i in enumerate(frames):
+        if anchor and truth.frames[i].view == first_view:
+            continue
+        r, t = pose_error(refined.cam_to_world(i if full else a), truth.cam_to_world(i))
+        cr.append(r)
+        ct.append(t * 1000)
+    pr, pt = [], []
+    for pid, pj in truth.projectors.items():
+        if pj.proj_to_cam is not None:
+            r, t = pose_error(refined.projectors[pid].proj_to_cam, pj.proj_to_cam)
+        else:
+            i = frames[0]
+            r, t = pose_error(refined.proj_to_world(i if full else 0, pid), truth.proj_to_world(i, pid))
+        pr.append(r)
+        pt.append(t * 1000)
+    f = lambda xs, g: float(g(xs)) if xs else 0.0  # noqa: E731
+    return {"cam_rot_deg_mean": f(cr, np.mean), "cam_rot_deg_max": f(cr, np.max),
+            "cam_trans_mm_mean": f(ct, np.mean), "cam_trans_mm_max": f(ct, np.max),
+            "proj_rot_deg_mean": f(pr, np.mean), "proj_rot_deg_max": f(pr, np.max),
+            "proj_trans_mm_mean": f(pt, np.mean), "proj_trans_mm_max": f(pt, np.max)}
+
+
+def state_of(rig: Rig) -> dict:
+    """The rig's learned tensors for a checkpoint."""
+    return {k: v.detach().cpu() for k, v in rig.named_parameters()}
+
+
+def load_into(rig: Rig, st: dict | None) -> None:
+    if not st:
+        return
+    with torch.no_grad():
+        for k, v in rig.named_parameters():
+            if k in st and st[k].shape == v.shape:
+                v.copy_(st[k].to(v.device))
