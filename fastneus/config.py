@@ -107,6 +107,9 @@ class Config:
     pose_anchor: bool = True           # the first training viewpoint's camera stays fixed (world frame)
     lr_pose: float = 1e-3              # on the corrections (radians, normalised units)
     pose_warmup_frac: float = 0.1      # corrections frozen until the geometry has formed
+    projector_blur: int = 0            # learned n x n separable blur of each projector's pattern (0 = off; odd n <= 7)
+    lr_blur: float = 5e-3              # on the x / y kernel profiles (identity init, each normalised to sum 1)
+    blur_warmup_frac: float = 0.1      # kernels frozen for this fraction of the run
 
     # --- export ---
     mesh_resolution: int = 256
@@ -125,7 +128,8 @@ _CHOICES = {
 }
 # fractions of the run: each must lie in [0, 1]
 _FRACTIONS = ("occ_warmup_frac", "c2f_frac", "inv_s_floor_frac", "warmup_frac", "color_warmup_frac",
-              "cos_anneal_frac", "illum_warmup_frac", "bg_start_frac", "pose_warmup_frac")
+              "cos_anneal_frac", "illum_warmup_frac", "bg_start_frac", "pose_warmup_frac",
+              "blur_warmup_frac")
 # keys of earlier versions (schedules in steps): converted to fractions of the run when a saved
 # config is read back (a run folder from an older fastneus must still open)
 _LEGACY_STEPS = {"occ_warmup_steps": "occ_warmup_frac", "warmup_steps": "warmup_frac",
@@ -134,7 +138,7 @@ _LEGACY_STEPS = {"occ_warmup_steps": "occ_warmup_frac", "warmup_steps": "warmup_
 _POSITIVE = {"steps", "target_samples", "init_rays", "min_rays", "max_rays", "march_step",
              "max_samples_per_ray", "occ_resolution", "occ_update_every", "levels", "features",
              "log2_table", "base_res", "finest_res", "sdf_hidden", "geo_features", "color_hidden",
-             "lr", "adam_eps", "mesh_resolution", "log_every", "save_every", "lr_pose"}
+             "lr", "adam_eps", "mesh_resolution", "log_every", "save_every", "lr_pose", "lr_blur"}
 
 
 def preset_names() -> list[str]:
@@ -218,6 +222,9 @@ def validate(cfg: Config, source: str = "config") -> None:
         if not 0.0 <= getattr(cfg, k) <= 1.0:
             raise FastneusError(f"a fraction of the run must be in [0, 1], got {getattr(cfg, k)!r}",
                                 file=source, field=k)
+    if cfg.projector_blur not in (0, 1, 3, 5, 7):
+        raise FastneusError(f"must be 0 (off) or an odd kernel size 1..7, got {cfg.projector_blur}", file=source,
+                            field="projector_blur")
     if not (0 < cfg.decay_to <= 1):
         raise FastneusError("must be in (0, 1]", file=source, field="decay_to")
 

@@ -1,11 +1,12 @@
 """What a real rig gets wrong, learned during training: pose corrections of cameras and
-projectors (and, in later sections of this module, projector blur and the water medium).
+projectors, a per-projector pattern blur (defocus), and (later sections) the water medium.
 
 The trainer owns one :class:`Rig`. It is inert unless a config key turns a part on
-(``pose_refine``), so the default step is unchanged. Hooks, all cheap when off:
+(``pose_refine``, ``projector_blur``), so the default step is unchanged. Hooks, all cheap when off:
 
 - :meth:`Rig.rays` corrects a batch's camera rays (differentiable in the corrections);
-- :meth:`Rig.projection` returns the per-frame projector data with corrected poses;
+- :meth:`Rig.projection` returns the per-frame projector data with corrected poses and the
+  learned light model (blur kernels, sampled by ``fastneus.kernels.project``);
 - :meth:`Rig.param_groups` / :meth:`Rig.lr_gate` give its Adam groups and their warm-ups.
 
 Pose corrections (small-angle SE(3), ``xi = (omega, v)``: rotation vector in radians and
@@ -104,6 +105,12 @@ class Rig(torch.nn.Module):
                                                         dtype=torch.long, device=self.device), persistent=False)
         self.pose_on = bool(cfg.pose_refine)
         n_views, n_proj = len(self.view_ids), max(1, len(self.proj_ids))
+        self.blur_n = int(cfg.projector_blur) if cfg.projector_blur > 1 else 0
+        self.blur_on = self.blur_n > 0
+        n = max(1, self.blur_n)
+        raw = torch.zeros(n_proj, 2, n, device=self.device)  # separable: column (x) and row (y) profiles
+        raw[:, :, n // 2] = 1.0  # identity
+        self.blur_raw = torch.nn.Parameter(raw)
         self.cam_xi = torch.nn.Parameter(torch.zeros(n_views, 6, device=self.device))
         self.proj_xi = torch.nn.Parameter(torch.zeros(n_proj, 6, device=self.device))
         mask = torch.ones(n_views, 1, device=self.device)
@@ -135,19 +142,27 @@ class Rig(torch.nn.Module):
 
     @property
     def active(self) -> bool:
-        return self.pose_on
+        return self.pose_on or self.blur_on
+
+    def kernel_ops(self) -> tuple[str, ...]:
+        """Extra kernel ops a training step uses (compiled before the clock starts)."""
+        return ("project_pattern",) if self.blur_on else ()
 
     def param_groups(self, cfg) -> list[dict]:
         """Adam groups of the enabled parts (names start with ``rig_``)."""
         groups = []
         if self.pose_on:
             groups.append({"params": [self.cam_xi, self.proj_xi], "lr": cfg.lr_pose, "name": "rig_pose"})
+        if self.blur_on:
+            groups.append({"params": [self.blur_raw], "lr": cfg.lr_blur, "name": "rig_blur"})
         return groups
 
     def lr_gate(self, name: str, progress: float) -> float:
         """1 when group ``name`` learns at ``progress`` of the run, 0 during its warm-up."""
         if name == "rig_pose":
             return 0.0 if progress < self.cfg.pose_warmup_frac else 1.0
+        if name == "rig_blur":
+            return 0.0 if progress < self.cfg.blur_warmup_frac else 1.0
         return 1.0
 
     # ------------------------------------------------------------------ corrections
@@ -158,6 +173,23 @@ class Rig(torch.nn.Module):
     def proj_correction(self) -> torch.Tensor:
         """[P, 4, 4] per-projector correction E (world units)."""
         return se3_matrix(self.proj_xi, self.radius)
+
+    def blur_kernels(self) -> torch.Tensor:
+        """[P, n*n] pattern blur taps ``k[a, b] = y[a] x[b]`` (row-major), identity at init.
+
+        The kernel is separable: an x profile and a y profile per projector, each normalised
+        to sum 1. A full n x n kernel is not identifiable from line patterns (a vertical laser
+        line only sees the kernel's column sums), a separable one is, and defocus is close to
+        a separable Gaussian. Plain normalisation (not softmax) keeps the identity init exact and
+        every tap learnable; small negative taps are allowed (optics can also sharpen)."""
+        prof = self.blur_raw / self.blur_raw.sum(-1, keepdim=True)  # [P, 2, n]
+        return (prof[:, 1, :, None] * prof[:, 0, None, :]).reshape(prof.shape[0], -1)
+
+    def light_model(self, proj):
+        """``proj`` with the learned light model attached (the blur), poses untouched."""
+        if not self.blur_on:
+            return proj
+        return dataclasses.replace(proj, blur=self.blur_kernels())
 
     def rays(self, batch: dict) -> dict:
         """Correct the camera rays of a :meth:`RayBank.sample` batch (a new dict; no-op when off).
@@ -183,7 +215,7 @@ class Rig(torch.nn.Module):
         ``W' = E_p^-1 A E_c^-1 A^-1 W`` for a rigged projector (A = camera->projector),
         ``W' = E_p^-1 W`` for a free one; W maps normalised points to projector coordinates.
         """
-        proj = self._proj if proj is None else proj
+        proj = self.light_model(self._proj if proj is None else proj)
         if not self.pose_on:
             return proj
         Ec_inv = rigid_inv(self.cam_correction())[self.frame_view]      # [F, 4, 4]
@@ -258,6 +290,11 @@ class Rig(torch.nn.Module):
                                        [None if x is None else x.tolist() for x in v]) for k, v in e.items()}
                                for p, e in r["projectors"].items()},
             }
+        if self.blur_on:
+            k = self.blur_kernels().detach().double().cpu().numpy()
+            d["blur"] = {"size": self.blur_n,
+                         "kernels": {p: k[i].reshape(self.blur_n, self.blur_n).tolist()
+                                     for i, p in enumerate(self.proj_ids)}}
         atomic_write_json(Path(out) / "rig.json", d)
 
 

@@ -33,12 +33,14 @@ class Projection:
         W: [F, P, 3, 4] normalised point -> projector camera coordinates.
         pattern: [F, P] int32 index into ``store`` (-1 = off).
         store: all distinct patterns, packed once.
+        blur: [P, n*n] per-projector pattern blur taps (fastneus.rig), None = plain sampling.
     """
 
     K: torch.Tensor
     W: torch.Tensor
     pattern: torch.Tensor
     store: PatternStore
+    blur: torch.Tensor | None = None
 
 
 def build_projection(scene, frames: list[int], device) -> Projection:

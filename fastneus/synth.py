@@ -85,6 +85,29 @@ def orbit_poses(n: int, distance: float, seed: int = 0, elevation_deg=(10.0, 65.
     return out
 
 
+def blur_kernel(sigma: float, n: int = 5) -> np.ndarray:
+    """[n, n] Gaussian of ``sigma`` pixels truncated to n x n taps, normalised to sum 1."""
+    h = (n - 1) / 2
+    x = np.arange(n) - h
+    g = np.exp(-0.5 * (x / sigma) ** 2)
+    k = np.outer(g, g)
+    return k / k.sum()
+
+
+def _sample_blurred(pattern: torch.Tensor, px: torch.Tensor, valid: torch.Tensor, taps) -> torch.Tensor:
+    """Pattern light through a blur: sum_ab taps[a, b] * sample(px + (b - h, a - h)); taps None = sharp."""
+    if taps is None:
+        return sample_pattern(pattern, px, valid)
+    n = taps.shape[0]
+    h = (n - 1) / 2
+    q = torch.zeros(px.shape[0], 3, dtype=px.dtype, device=px.device)
+    for a in range(n):
+        for b in range(n):
+            off = torch.tensor([b - h, a - h], dtype=px.dtype, device=px.device)
+            q = q + float(taps[a, b]) * sample_pattern(pattern, px + off, valid)
+    return q
+
+
 # --------------------------------------------------------------------------- albedo
 class Albedo:
     """Surface colour at world points, [N, 3] in [0, 1]."""
@@ -177,7 +200,7 @@ def synthesize(out, shape: str | None = None, mesh=None, views: int = 20, size=(
                i_b: float = 0.1, proj_size=(1024, 768), proj_fov_deg: float = 60.0, baselines=None,
                cam_distance: float = 4.0, focal: float | None = None, poses=None, normalise: bool = True,
                pattern_opts: dict | None = None, light_dir=(0.35, -0.4, 0.85), contact_sheet: bool = True,
-               progress: bool = True, threads: int | None = 1) -> Scene:
+               progress: bool = True, threads: int | None = 1, projector_blur: float = 0.0) -> Scene:
     """Render a synthetic structured-light scene into ``out`` and return it (loaded back).
 
     Args:
@@ -206,6 +229,10 @@ def synthesize(out, shape: str | None = None, mesh=None, views: int = 20, size=(
         light_dir: world direction toward the light of the Lambertian shading.
         contact_sheet: write ``contact_sheet.png`` (first frames, for a person to look at).
         progress: show a rich progress bar and print a summary.
+        projector_blur: defocus of every projector, the sigma (projector pixels) of a Gaussian
+            truncated to 5 x 5 taps and normalised (:func:`blur_kernel`); the pattern is
+            correlated with it (zero outside the pattern) before sampling, exactly the model of
+            ``projector_blur=5`` in training. 0 = sharp.
         threads: torch CPU threads while rendering (restored afterwards; None = leave as is).
             Default 1: the per-view tensors are ~1e5 elements, where intra-op threading
             gains little and costs up to 8x when the cores are shared (measured).
@@ -224,7 +251,7 @@ def synthesize(out, shape: str | None = None, mesh=None, views: int = 20, size=(
 
 def _synthesize(out, shape, mesh, views, size, pattern, illum, albedo, noise, seed, device, ambient, i_r, i_b,
                 proj_size, proj_fov_deg, baselines, cam_distance, focal, poses, normalise, pattern_opts,
-                light_dir, contact_sheet, progress) -> Scene:
+                light_dir, contact_sheet, progress, projector_blur) -> Scene:
     from .kernels.raycast import raycast_mesh
 
     t_start = time.perf_counter()
@@ -239,6 +266,9 @@ def _synthesize(out, shape, mesh, views, size, pattern, illum, albedo, noise, se
         raise FastneusError("need at least one view", field="--views")
     if noise < 0:
         raise FastneusError("noise sigma must be >= 0", field="--noise")
+    if projector_blur < 0:
+        raise FastneusError("projector blur sigma must be >= 0", field="--projector-blur")
+    taps = blur_kernel(projector_blur) if projector_blur > 0 else None
     amb = float(ILLUMS[illum] if ambient is None else ambient)
     dev = torch.device(device)
 
@@ -351,7 +381,7 @@ def _synthesize(out, shape, mesh, views, size, pattern, illum, albedo, noise, se
                 front = z > Z_MIN
                 need = torch.zeros(P.shape[0], dtype=torch.bool, device=dev)
                 for j, shot in enumerate(shots):
-                    q = sample_pattern(pat_t[shot[p]], px, front)
+                    q = _sample_blurred(pat_t[shot[p]], px, front, taps)
                     Q[j][k] = q
                     need |= q.amax(dim=1) > 0
                 C = torch.tensor(p2w[:3, 3], dtype=torch.float32, device=dev)
@@ -414,7 +444,9 @@ def _synthesize(out, shape, mesh, views, size, pattern, illum, albedo, noise, se
         units="m", name=name,
         meta={"generator": GENERATOR, "source": src, "pattern": kind, "illum": illum, "albedo": albedo,
               "noise": noise, "seed": seed, "light_dir": list(map(float, light_dir)), "cam_distance": cam_distance,
-              "baselines": list(map(float, baselines)), "projector_hfov_deg": proj_fov_deg})
+              "baselines": list(map(float, baselines)), "projector_hfov_deg": proj_fov_deg,
+              **({"projector_blur_sigma_px": float(projector_blur), "projector_blur_kernel": taps.tolist()}
+                 if taps is not None else {})})
     if contact_sheet and sheet_rows:
         write_png(out / "contact_sheet.png", _contact_sheet(sheet_rows))
     scene.save(out)
@@ -491,6 +523,8 @@ def register(subparsers) -> None:
     p.add_argument("--noise", type=float, default=0.005, help="Gaussian noise sigma (default 0.005)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--proj-size", default="1024x768", help="projector size WxH (default 1024x768)")
+    p.add_argument("--projector-blur", type=float, default=0.0, metavar="SIGMA",
+                   help="projector defocus: Gaussian sigma in projector pixels, 5x5 taps (default 0 = sharp)")
     p.add_argument("--no-contact-sheet", action="store_true")
     p.add_argument("--threads", type=int, default=1, help="torch CPU threads while rendering (default 1)")
     add_device_arg(p)
@@ -509,5 +543,5 @@ def _run(args) -> int:
     synthesize(args.out, shape=args.shape, mesh=args.mesh, views=args.views, size=size, pattern=args.pattern,
                illum=args.illum, albedo=args.albedo, noise=args.noise, seed=args.seed, device=device,
                ambient=args.ambient, proj_size=psize, contact_sheet=not args.no_contact_sheet,
-               threads=args.threads)
+               threads=args.threads, projector_blur=args.projector_blur)
     return 0

@@ -14,6 +14,7 @@ _OPS = {
     "march_rays": "occupancy",
     "occupancy_alpha": "occupancy",
     "render_pattern": "render",
+    "project_pattern": "project",
     "raycast_mesh": "raycast",
 }
 

@@ -186,3 +186,83 @@ def test_trainer_learns_corrections_after_warmup_and_resumes(tmp_path):
     assert tr2.step == 14
     off = Trainer(scene, load_config("cpu-quick", over), tmp_path / "run_off", "cpu")
     assert off.rig.param_groups(off.cfg) == [] and off.rig.projection() is off.proj
+
+
+# --------------------------------------------------------------------------- projector blur
+def test_blur_kernel_recovered_through_project_op(tmp_path):
+    """Light from a defocused projector (a known 5x5 Gaussian) pins the learned kernel."""
+    from fastneus.kernels import get_op
+    from fastneus.patterns import make_pattern
+    from fastneus.synth import blur_kernel
+
+    scene = make_scene(tmp_path / "s", n=1, n_proj=1, seed=6)
+    cv2.imwrite(str(tmp_path / "s" / "patterns" / "q0.png"),
+                make_pattern("crosslaser", 32, 24, seed=1, count=4, line_width=1)[0][:, :, ::-1])
+    bank, proj = RayBank(scene, [0], "cpu"), build_projection(scene, [0], "cpu")
+    rig = Rig(scene, [0], bank, proj, load_config("cpu-quick", ["projector_blur=5"]), "cpu")
+    rng = np.random.default_rng(3)
+    pos = torch.tensor(rng.uniform(-0.6, 0.6, (3000, 3)), dtype=torch.float32)
+    n = pos.shape[0]
+    idx = torch.arange(n, dtype=torch.int32)
+    args = (pos, idx, idx, torch.ones(n, dtype=torch.int32), torch.zeros(n, dtype=torch.int32), proj.K, proj.W,
+            proj.pattern, proj.store)
+    op = get_op("project_pattern", "warp")
+    true_k = torch.tensor(blur_kernel(0.9), dtype=torch.float32).reshape(1, 25)
+    target = op(*args, true_k)
+    assert float(target.max()) > 0.05
+    err0 = float((rig.blur_kernels() - true_k).abs().sum().detach())
+    opt = torch.optim.Adam([rig.blur_raw], lr=1e-2)
+    for _ in range(300):
+        loss = ((op(*args, rig.blur_kernels()) - target) ** 2).mean()
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    err = float((rig.blur_kernels() - true_k).abs().sum().detach())
+    assert err < 0.1 * err0, (err0, err)
+
+
+def test_blur_identity_at_init_and_learned_in_training(tmp_path):
+    from fastneus.data import Scene
+    from fastneus.field.renderer import render_rays
+    from fastneus.synth import synthesize
+    from fastneus.train.trainer import Trainer
+
+    synthesize(tmp_path / "sc", shape="sphere", views=2, size=(24, 24), seed=0, device="cpu", progress=False,
+               contact_sheet=False, proj_size=(64, 48), projector_blur=1.0)
+    scene = Scene.load(tmp_path / "sc")
+    assert np.isclose(np.sum(scene.meta["projector_blur_kernel"]), 1.0)
+    over = ["steps=10", "blur_warmup_frac=0.5", "occ_resolution=16", "target_samples=2048", "init_rays=128",
+            "max_rays=256", "log_every=5", "save_every=100", "projector_blur=5"]
+    tr = Trainer(scene, load_config("cpu-quick", over), tmp_path / "run", "cpu")
+    tr.grid.update(tr.field.sdf, 0.0, tr.cfg.march_step, warmup=True)
+    b = tr.bank.sample(128, torch.Generator().manual_seed(0))
+    kw = dict(i_r=torch.tensor([0.4]), i_b=torch.tensor([0.1]), cos_anneal=1.0, jitter=False)
+    with torch.no_grad():
+        a = render_rays(tr.field, tr.grid.bits, tr.grid.resolution, tr.rig.projection(), b["origins"], b["dirs"],
+                        b["fidx"], tr.cfg, **kw)
+        c = render_rays(tr.field, tr.grid.bits, tr.grid.resolution, tr.proj, b["origins"], b["dirs"], b["fidx"],
+                        tr.cfg, **kw)
+    assert tr.rig.projection().blur is not None and tr.proj.blur is None
+    torch.testing.assert_close(a["color"], c["color"], atol=1e-6, rtol=1e-5)
+    assert float((a["color"] - a["texture"]).abs().max()) > 0  # the pattern reaches the surface
+    tr.fit()
+    k = json.loads((tmp_path / "run" / "rig.json").read_text())["blur"]
+    assert k["size"] == 5 and abs(np.sum(k["kernels"]["proj0"]) - 1) < 1e-6
+    assert float((tr.rig.blur_kernels().detach() - torch.eye(25)[12]).abs().max()) > 0  # learned after the warm-up
+    assert torch.allclose(tr.rig.blur_kernels().sum(-1), torch.ones(1))
+
+
+def test_synth_projector_blur_changes_only_the_lit_pixels(tmp_path):
+    from fastneus.data import Scene
+    from fastneus.errors import FastneusError
+    from fastneus.synth import synthesize
+
+    kw = dict(shape="sphere", views=1, size=(32, 32), seed=0, device="cpu", progress=False, contact_sheet=False,
+              proj_size=(64, 48), noise=0.0)
+    synthesize(tmp_path / "a", **kw)
+    synthesize(tmp_path / "b", projector_blur=1.2, **kw)
+    a, b = Scene.load(tmp_path / "a"), Scene.load(tmp_path / "b")
+    ia, ib = a.image(0).astype(int), b.image(0).astype(int)
+    assert np.abs(ia - ib).max() > 10 and np.array_equal(a.gt_clean(0), b.gt_clean(0))
+    with pytest.raises(FastneusError, match="blur"):
+        synthesize(tmp_path / "c", projector_blur=-1, **kw)

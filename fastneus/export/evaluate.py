@@ -131,6 +131,8 @@ def render_frames(trainer, frames: list[int], chunk: int = 8192) -> dict[int, di
     scene, cfg = trainer.scene, trainer.cfg
     bank = RayBank(scene, frames, trainer.device)
     proj = build_projection(scene, frames, trainer.device)
+    if getattr(trainer, "rig", None) is not None:  # learned light model (blur...); poses are per training frame
+        proj = trainer.rig.light_model(proj)
     i_r, i_b = (x.detach() for x in trainer.illumination())
     out = {}
     for a, i in enumerate(frames):

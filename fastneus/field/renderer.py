@@ -56,9 +56,13 @@ def render_rays(field, bits: torch.Tensor, grid_res: int, proj, origins: torch.T
     color = field.color(pos, grad, d_s, geo)
     pattern_on = cfg.use_pattern if use_pattern is None else use_pattern
     pat = proj.pattern if pattern_on else torch.full_like(proj.pattern, -1)
+    q_ext = None
+    if getattr(proj, "blur", None) is not None:  # real-rig light model (fastneus.rig): Q computed apart
+        q_ext = get_op("project_pattern", cfg.backend)(pos, ray_index, offsets, counts, fidx, proj.K, proj.W, pat,
+                                                       proj.store, proj.blur)
     out = render(sdf, grad, color, pos, t0, t1, ray_index, offsets, counts, dirs, fidx,
                  proj.K, proj.W, pat, proj.store, field.inv_s(), float(cos_anneal), i_r, i_b,
-                 return_weights=with_normals)
+                 return_weights=with_normals, q_ext=q_ext)
     res = dict(out)
     res["grad"], res["curv"], res["n_samples"] = grad, curv, s
     if with_normals:

@@ -314,7 +314,8 @@ class Trainer:
         from fastneus.kernels import prepare_kernels
 
         prepare_kernels(self.device, say=self.console.print if self.console is not None else None,
-                        backend=self.cfg.backend)
+                        backend=self.cfg.backend,
+                        ops=("hash_encode", "march_rays", "render_pattern") + self.rig.kernel_ops())
 
     # ------------------------------------------------------------------ checkpoints
     def state(self) -> dict:

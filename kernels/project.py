@@ -1,0 +1,273 @@
+"""Projected light at sample points, Q(P), with a per-projector blur of the pattern.
+
+``project_pattern`` is the Warp op (forward one thread per sample, backward one thread per
+ray so the shared blur and pose gradients are summed per ray before one atomic each);
+``project_pattern_torch`` is its pure-torch twin (same signature and maths). The render op
+takes the result as ``q_ext`` instead of sampling the patterns itself. See docs/INTERNALS.md,
+section "project_pattern".
+
+For sample P of a ray of frame f, projector k showing pattern pid (``proj_pattern[f, k]``,
+-1 = off), X = W[f, k] [P, 1] (projector coordinates), z = X.z, (p_x, p_y) = (K X / z)[:2]::
+
+    Q(P) = sum_k [z > 1e-6] sum_{a, b = 0..n-1} blur[k, a n + b]
+                 * bilinear(pattern_pid, p_x - 0.5 + b - h, p_y - 0.5 + a - h),   h = (n - 1) / 2
+
+i.e. the pattern correlated with the n x n kernel (zero outside the pattern, so light blurs
+past its edge), sampled bilinearly; ``blur`` rows are used as given (the caller normalises
+them). n = 1 with weight 1 is the plain pattern sample of the render op.
+"""
+from __future__ import annotations
+
+from functools import partial
+
+import torch
+import warp as wp
+
+from . import _warp
+from .render import _Z_MIN, MAX_PROJECTORS, PatternStore, _bilinear, _bilinear_vg, _f32, _i32, _transform, mat34
+
+_warp.init()
+_wp = partial(_warp.to_wp, ctype=True)
+wp.set_module_options({"enable_backward": False})
+
+MAX_TAPS = 49  # n <= 7
+_taps = wp.types.vector(length=MAX_TAPS, dtype=wp.float32)
+
+
+@wp.kernel
+def _project_fwd(pos: wp.array(dtype=wp.vec3), ray_index: wp.array(dtype=wp.int32), ray_frame: wp.array(dtype=wp.int32),
+                 K: wp.array2d(dtype=wp.mat33), W: wp.array2d(dtype=mat34), proj_pattern: wp.array2d(dtype=wp.int32),
+                 pat: wp.array(dtype=wp.uint8), meta: wp.array(dtype=wp.vec3i), blur: wp.array2d(dtype=float),
+                 n: int, out_q: wp.array(dtype=wp.vec3)):
+    i = wp.tid()
+    f = ray_frame[ray_index[i]]
+    p = pos[i]
+    h = float(n - 1) * 0.5
+    q = wp.vec3(0.0)
+    for k in range(proj_pattern.shape[1]):
+        pid = proj_pattern[f, k]
+        if pid >= 0:
+            X = _transform(W[f, k], p)
+            if X[2] > 1e-6:
+                u = K[f, k] * X
+                m = meta[pid]
+                x = u[0] / X[2] - 0.5 - h
+                y = u[1] / X[2] - 0.5 - h
+                for a in range(n):
+                    for b in range(n):
+                        q += blur[k, a * n + b] * _bilinear(pat, m[0], m[1], m[2], x + float(b), y + float(a))
+    out_q[i] = q
+
+
+@wp.kernel
+def _project_bwd(pos: wp.array(dtype=wp.vec3), offsets: wp.array(dtype=wp.int32), counts: wp.array(dtype=wp.int32),
+                 ray_frame: wp.array(dtype=wp.int32), K: wp.array2d(dtype=wp.mat33), W: wp.array2d(dtype=mat34),
+                 proj_pattern: wp.array2d(dtype=wp.int32), pat: wp.array(dtype=wp.uint8),
+                 meta: wp.array(dtype=wp.vec3i), blur: wp.array2d(dtype=float), n: int,
+                 g_q: wp.array(dtype=wp.vec3), need_pos: int, need_W: int, need_blur: int,
+                 d_pos: wp.array(dtype=wp.vec3), d_W: wp.array(dtype=float), d_blur: wp.array(dtype=float)):
+    r = wp.tid()
+    start = offsets[r]
+    cnt = counts[r]
+    if cnt == 0:
+        return
+    f = ray_frame[r]
+    P = proj_pattern.shape[1]
+    h = float(n - 1) * 0.5
+    T = n * n
+    for k in range(P):
+        pid = proj_pattern[f, k]
+        if pid >= 0:
+            Wf = W[f, k]
+            Kf = K[f, k]
+            m = meta[pid]
+            accB = _taps()
+            accW = wp.vec4(0.0)
+            accW1 = wp.vec4(0.0)
+            accW2 = wp.vec4(0.0)
+            for i in range(start, start + cnt):
+                p = pos[i]
+                X = _transform(Wf, p)
+                z = X[2]
+                if z > 1e-6:
+                    gq = g_q[i]
+                    u = Kf * X
+                    px = u[0] / z
+                    py = u[1] / z
+                    g2 = wp.vec2(0.0)
+                    for a in range(n):
+                        for b in range(n):
+                            t = a * n + b
+                            v, gt = _bilinear_vg(pat, m[0], m[1], m[2], px - 0.5 - h + float(b),
+                                                 py - 0.5 - h + float(a), gq)
+                            accB[t] = accB[t] + wp.dot(gq, v)
+                            g2 += blur[k, t] * gt
+                    gX = (g2[0] * wp.vec3(Kf[0, 0], Kf[0, 1], Kf[0, 2])
+                          + g2[1] * wp.vec3(Kf[1, 0], Kf[1, 1], Kf[1, 2])) / z
+                    gX = gX - wp.vec3(0.0, 0.0, (g2[0] * px + g2[1] * py) / z)
+                    if need_pos != 0:
+                        d_pos[i] = d_pos[i] + wp.vec3(
+                            Wf[0, 0] * gX[0] + Wf[1, 0] * gX[1] + Wf[2, 0] * gX[2],
+                            Wf[0, 1] * gX[0] + Wf[1, 1] * gX[1] + Wf[2, 1] * gX[2],
+                            Wf[0, 2] * gX[0] + Wf[1, 2] * gX[1] + Wf[2, 2] * gX[2])
+                    ph = wp.vec4(p[0], p[1], p[2], 1.0)
+                    accW += gX[0] * ph
+                    accW1 += gX[1] * ph
+                    accW2 += gX[2] * ph
+            if need_blur != 0:
+                for t in range(T):
+                    wp.atomic_add(d_blur, k * T + t, accB[t])
+            if need_W != 0:
+                base = (f * P + k) * 12
+                for j in range(4):
+                    wp.atomic_add(d_W, base + j, accW[j])
+                    wp.atomic_add(d_W, base + 4 + j, accW1[j])
+                    wp.atomic_add(d_W, base + 8 + j, accW2[j])
+
+
+def _check(pos, proj_K, proj_W, proj_pattern, patterns, blur) -> int:
+    if proj_W.ndim != 4 or tuple(proj_W.shape[2:]) != (3, 4):
+        raise ValueError(f"proj_W must be [F, P, 3, 4], got {tuple(proj_W.shape)}")
+    F, P = proj_W.shape[:2]
+    if tuple(proj_K.shape) != (F, P, 3, 3) or tuple(proj_pattern.shape) != (F, P):
+        raise ValueError(f"proj_K {tuple(proj_K.shape)} / proj_pattern {tuple(proj_pattern.shape)} do not match "
+                         f"proj_W [F={F}, P={P}, 3, 4]")
+    if P > MAX_PROJECTORS:
+        raise ValueError(f"at most {MAX_PROJECTORS} projectors per frame are supported, got {P}")
+    if blur.ndim != 2 or blur.shape[0] != P:
+        raise ValueError(f"blur must be [P={P}, n*n], got {tuple(blur.shape)}")
+    n = int(round(blur.shape[1] ** 0.5))
+    if n * n != blur.shape[1] or n % 2 == 0 or n * n > MAX_TAPS:
+        raise ValueError(f"blur rows must hold n*n taps with n odd and n*n <= {MAX_TAPS}, got {blur.shape[1]}")
+    if patterns.buffer.device != pos.device:
+        raise ValueError(f"PatternStore is on {patterns.buffer.device} but the samples are on {pos.device}")
+    return n
+
+
+class _ProjectPattern(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, pos, proj_W, blur, ray_index, offsets, counts, ray_frame, proj_K, proj_pattern, pat_buf,
+                pat_meta, n):
+        S = pos.shape[0]
+        out = torch.zeros((S, 3), dtype=torch.float32, device=pos.device)
+        _warp.launch(_project_fwd, S, [_wp(pos, wp.vec3), _wp(ray_index), _wp(ray_frame), _wp(proj_K, wp.mat33),
+                                       _wp(proj_W, mat34), _wp(proj_pattern), _wp(pat_buf), _wp(pat_meta, wp.vec3i),
+                                       _wp(blur), int(n)], pos, outputs=[_wp(out, wp.vec3)])
+        ctx.save_for_backward(pos, proj_W, blur, offsets, counts, ray_frame, proj_K, proj_pattern, pat_buf, pat_meta)
+        ctx.n = int(n)
+        return out
+
+    @staticmethod
+    def backward(ctx, g_q):
+        pos, proj_W, blur, offsets, counts, ray_frame, proj_K, proj_pattern, pat_buf, pat_meta = ctx.saved_tensors
+        need = ctx.needs_input_grad[:3]
+        if not any(need):
+            return (None,) * 12
+        dev = pos.device
+        d_pos = torch.zeros_like(pos) if need[0] else torch.zeros((1, 3), device=dev)
+        d_W = torch.zeros_like(proj_W) if need[1] else torch.zeros((1,), device=dev)
+        d_blur = torch.zeros_like(blur) if need[2] else torch.zeros((1,), device=dev)
+        _warp.launch(_project_bwd, offsets.shape[0],
+                     [_wp(pos, wp.vec3), _wp(offsets), _wp(counts), _wp(ray_frame), _wp(proj_K, wp.mat33),
+                      _wp(proj_W, mat34), _wp(proj_pattern), _wp(pat_buf), _wp(pat_meta, wp.vec3i), _wp(blur),
+                      ctx.n, _wp(_f32(g_q), wp.vec3), int(need[0]), int(need[1]), int(need[2])],
+                     pos, outputs=[_wp(d_pos, wp.vec3), _wp(d_W.view(-1)), _wp(d_blur.view(-1))])
+        return (d_pos if need[0] else None, d_W if need[1] else None, d_blur if need[2] else None) + (None,) * 9
+
+
+def project_pattern(
+    pos: torch.Tensor,  # [S, 3] float32, sample positions (normalised space)
+    ray_index: torch.Tensor,  # [S] int32, sample -> ray
+    offsets: torch.Tensor,  # [R] int32, first sample of each ray (samples packed by ray)
+    counts: torch.Tensor,  # [R] int32
+    ray_frame: torch.Tensor,  # [R] int32
+    proj_K: torch.Tensor,  # [F, P, 3, 3] float32
+    proj_W: torch.Tensor,  # [F, P, 3, 4] float32, normalised point -> projector coords
+    proj_pattern: torch.Tensor,  # [F, P] int32, -1 = off
+    patterns: PatternStore,
+    blur: torch.Tensor,  # [P, n*n] float32 tap weights (n odd), row-major over (a = row, b = column)
+) -> torch.Tensor:
+    """Q(P): projected light at each sample, through a per-projector n x n pattern blur.
+
+    Differentiable in ``pos``, ``proj_W`` and ``blur`` (Warp forward and hand-written Warp
+    backward); the rest are constants. Float32; no host synchronisation.
+
+    Returns:
+        [S, 3] float32 (RGB, in [0, 1] per projector when the blur rows are non-negative and sum to 1).
+    """
+    n = _check(pos, proj_K, proj_W, proj_pattern, patterns, blur)
+    meta = patterns.meta
+    if meta.shape[0] == 0:
+        meta = torch.zeros((1, 3), dtype=torch.int32, device=pos.device)
+    return _ProjectPattern.apply(_f32(pos), _f32(proj_W), _f32(blur), _i32(ray_index), _i32(offsets), _i32(counts),
+                                 _i32(ray_frame), _f32(proj_K), _i32(proj_pattern), patterns.buffer.contiguous(),
+                                 _i32(meta), n)
+
+
+def _bilinear_torch(buf, off, w, h, valid, x, y, dtype):
+    """Bilinear pattern samples [S, 3] at array coords (x, y) [S] (zeros outside), as the Warp op."""
+    ch = torch.arange(3, device=x.device)
+    xf = torch.floor(x.detach()).clamp(-2.0, 2.0**30)
+    yf = torch.floor(y.detach()).clamp(-2.0, 2.0**30)
+    fx, fy = (x - xf)[:, None], (y - yf)[:, None]
+    x0, y0 = xf.long(), yf.long()
+    vals = []
+    for dy in (0, 1):
+        for dx in (0, 1):
+            xi, yi = x0 + dx, y0 + dy
+            inb = valid & (xi >= 0) & (xi < w) & (yi >= 0) & (yi < h)
+            idx = off + (yi.clamp(min=0) * w + xi.clamp(min=0)) * 3
+            idx = torch.where(inb, idx, torch.zeros_like(idx))
+            vals.append(buf[idx[:, None] + ch].to(dtype) / 255.0 * inb[:, None].to(dtype))
+    v00, v10, v01, v11 = vals
+    return (v00 * (1.0 - fx) + v10 * fx) * (1.0 - fy) + (v01 * (1.0 - fx) + v11 * fx) * fy
+
+
+def project_pattern_torch(
+    pos: torch.Tensor,  # [S, 3]
+    ray_index: torch.Tensor,  # [S] int32
+    offsets: torch.Tensor,  # [R] int32
+    counts: torch.Tensor,  # [R] int32
+    ray_frame: torch.Tensor,  # [R] int32
+    proj_K: torch.Tensor,  # [F, P, 3, 3]
+    proj_W: torch.Tensor,  # [F, P, 3, 4]
+    proj_pattern: torch.Tensor,  # [F, P] int32
+    patterns: PatternStore,
+    blur: torch.Tensor,  # [P, n*n]
+) -> torch.Tensor:
+    """Pure-torch twin of :func:`project_pattern` (works in ``pos``'s dtype, for gradcheck)."""
+    n = _check(pos, proj_K, proj_W, proj_pattern, patterns, blur)
+    dtype = pos.dtype
+    S = pos.shape[0]
+    q = torch.zeros((S, 3), dtype=dtype, device=pos.device)
+    meta = patterns.meta.long()
+    if meta.shape[0] == 0 or patterns.buffer.numel() == 0:
+        return q
+    frame_s = ray_frame.long()[ray_index.long()]
+    h = (n - 1) * 0.5
+    for k in range(proj_W.shape[1]):
+        pid = proj_pattern.long()[frame_s, k]
+        Wk = proj_W[frame_s, k].to(dtype)
+        Kk = proj_K[frame_s, k].to(dtype)
+        X = (Wk[:, :, 0] * pos[:, 0:1] + Wk[:, :, 1] * pos[:, 1:2] + Wk[:, :, 2] * pos[:, 2:3]) + Wk[:, :, 3]
+        z = X[:, 2]
+        valid = (pid >= 0) & (z > _Z_MIN)
+        zs = torch.where(valid, z, torch.ones_like(z))
+        u = (Kk * X[:, None, :]).sum(-1)
+        x = u[:, 0] / zs - 0.5 - h
+        y = u[:, 1] / zs - 0.5 - h
+        m = meta[pid.clamp(min=0)]
+        qk = torch.zeros_like(q)
+        for a in range(n):
+            for b in range(n):
+                qk = qk + blur[k, a * n + b].to(dtype) * _bilinear_torch(patterns.buffer, m[:, 0], m[:, 1], m[:, 2],
+                                                                          valid, x + b, y + a, dtype)
+        q = q + qk * valid[:, None].to(dtype)
+    return q
+
+
+def identity_blur(n_proj: int, n: int = 1, device="cpu") -> torch.Tensor:
+    """[P, n*n] kernels that leave the pattern unchanged (1 at the centre tap)."""
+    b = torch.zeros(n_proj, n * n, device=device)
+    b[:, (n * n) // 2] = 1.0
+    return b
