@@ -146,7 +146,8 @@ class Rig(torch.nn.Module):
 
     def kernel_ops(self) -> tuple[str, ...]:
         """Extra kernel ops a training step uses (compiled before the clock starts)."""
-        return ("project_pattern",) if self.blur_on else ()
+        ops = ("project_pattern",) if self.blur_on or self._proj.laser_on is not None else ()
+        return ops + (("laser_light",) if self._proj.laser_on is not None else ())
 
     def param_groups(self, cfg) -> list[dict]:
         """Adam groups of the enabled parts (names start with ``rig_``)."""

@@ -34,6 +34,9 @@ class Projection:
         pattern: [F, P] int32 index into ``store`` (-1 = off).
         store: all distinct patterns, packed once.
         blur: [P, n*n] per-projector pattern blur taps (fastneus.rig), None = plain sampling.
+        laser_on: [F, P] int32, 1 where projector k is a laser-plane projector lit in frame f
+            (None: the scene has no laser projectors).
+        planes: [P, L, 12] packed light planes (``fastneus.kernels.project.pack_planes``).
     """
 
     K: torch.Tensor
@@ -41,6 +44,8 @@ class Projection:
     pattern: torch.Tensor
     store: PatternStore
     blur: torch.Tensor | None = None
+    laser_on: torch.Tensor | None = None
+    planes: torch.Tensor | None = None
 
 
 def build_projection(scene, frames: list[int], device) -> Projection:
@@ -52,12 +57,18 @@ def build_projection(scene, frames: list[int], device) -> Projection:
     K = np.zeros((F, P, 3, 3))
     W = np.zeros((F, P, 3, 4))
     pat = -np.ones((F, P), dtype=np.int32)
+    lasers = [pid for pid in proj_ids if scene.projectors[pid].kind == "laser"]
+    laser_on = np.zeros((F, P), dtype=np.int32)
     for a, i in enumerate(frames):
         frame = scene.frames[i]
         for k, pid in enumerate(proj_ids):
             K[a, k] = np.eye(3)
             W[a, k, :, :3] = np.eye(3)
             fp = frame.projectors.get(pid)
+            if fp is not None and pid in lasers and fp.on:
+                W[a, k] = (np.asarray(scene.world_to_proj(i, pid), dtype=np.float64) @ S)[:3]
+                laser_on[a, k] = 1
+                continue
             if fp is None or fp.pattern is None:
                 continue
             K[a, k] = scene.projectors[pid].K
@@ -68,7 +79,13 @@ def build_projection(scene, frames: list[int], device) -> Projection:
     store = PatternStore([scene.pattern_image(p) for p in pat_ids], device) if pat_ids else \
         PatternStore([np.zeros((1, 1, 3), np.uint8)], device)
     t = lambda a, dt=torch.float32: torch.as_tensor(a, dtype=dt, device=device).contiguous()  # noqa: E731
-    return Projection(t(K), t(W), t(pat, torch.int32), store)
+    proj = Projection(t(K), t(W), t(pat, torch.int32), store)
+    if lasers:
+        from fastneus.kernels.project import pack_planes
+
+        proj.laser_on = t(laser_on, torch.int32)
+        proj.planes = pack_planes([scene.projectors[p].planes for p in proj_ids], device)
+    return proj
 
 
 class RayBank:

@@ -200,7 +200,8 @@ def synthesize(out, shape: str | None = None, mesh=None, views: int = 20, size=(
                i_b: float = 0.1, proj_size=(1024, 768), proj_fov_deg: float = 60.0, baselines=None,
                cam_distance: float = 4.0, focal: float | None = None, poses=None, normalise: bool = True,
                pattern_opts: dict | None = None, light_dir=(0.35, -0.4, 0.85), contact_sheet: bool = True,
-               progress: bool = True, threads: int | None = 1, projector_blur: float = 0.0) -> Scene:
+               progress: bool = True, threads: int | None = 1, projector_blur: float = 0.0,
+               laser_planes: bool = False) -> Scene:
     """Render a synthetic structured-light scene into ``out`` and return it (loaded back).
 
     Args:
@@ -233,6 +234,10 @@ def synthesize(out, shape: str | None = None, mesh=None, views: int = 20, size=(
             truncated to 5 x 5 taps and normalised (:func:`blur_kernel`); the pattern is
             correlated with it (zero outside the pattern) before sampling, exactly the model of
             ``projector_blur=5`` in training. 0 = sharp.
+        laser_planes: the projectors are laser line projectors defined by light planes
+            (``Projector.planes``, the exact model): the planes of the ``crosslaser`` pattern's
+            lines (same seed per projector, :func:`fastneus.lasers.crosslaser_planes`), sheet
+            thickness = the line width at ``cam_distance``. Needs ``pattern="crosslaser"``.
         threads: torch CPU threads while rendering (restored afterwards; None = leave as is).
             Default 1: the per-view tensors are ~1e5 elements, where intra-op threading
             gains little and costs up to 8x when the cores are shared (measured).
@@ -251,7 +256,7 @@ def synthesize(out, shape: str | None = None, mesh=None, views: int = 20, size=(
 
 def _synthesize(out, shape, mesh, views, size, pattern, illum, albedo, noise, seed, device, ambient, i_r, i_b,
                 proj_size, proj_fov_deg, baselines, cam_distance, focal, poses, normalise, pattern_opts,
-                light_dir, contact_sheet, progress, projector_blur) -> Scene:
+                light_dir, contact_sheet, progress, projector_blur, laser_planes) -> Scene:
     from .kernels.raycast import raycast_mesh
 
     t_start = time.perf_counter()
@@ -300,12 +305,25 @@ def _synthesize(out, shape, mesh, views, size, pattern, illum, albedo, noise, se
     projectors = {f"proj{k}": Projector(id=f"proj{k}", K=Kp, width=PW, height=PH,
                                         proj_to_cam=rig_proj_to_cam(b, cam_distance))
                   for k, b in enumerate(baselines)}
+    if laser_planes:
+        from .lasers import crosslaser_planes
+
+        if pattern != "crosslaser" or projector_blur > 0:
+            raise FastneusError("laser planes replace the crosslaser pattern (and have no blur)", field="--laser-planes")
+        lo = dict(pattern_opts or {})
+        for k, p in enumerate(projectors.values()):
+            p.planes = crosslaser_planes(Kp, PW, PH, cam_distance, seed=seed + k, count=lo.get("count", 8),
+                                         line_width=lo.get("line_width", 3))
+            p.K, p.width, p.height = np.eye(3), 1, 1
     pids = list(projectors)
     opts = dict(pattern_opts or {})
     # per shot j of a view: {projector id -> pattern id}; images by pattern id
     pat_images: dict[str, np.ndarray] = {}
     shots: list[dict[str, str]] = []
-    if isinstance(pattern, np.ndarray):
+    if laser_planes:
+        kind = "laserplanes"
+        shots.append({p: None for p in pids})
+    elif isinstance(pattern, np.ndarray):
         if pattern.dtype != np.uint8 or pattern.shape != (PH, PW, 3):
             raise FastneusError(f"a custom pattern must be uint8 [{PH}, {PW}, 3]", field="pattern")
         pat_images["custom"] = pattern
@@ -381,7 +399,12 @@ def _synthesize(out, shape, mesh, views, size, pattern, illum, albedo, noise, se
                 front = z > Z_MIN
                 need = torch.zeros(P.shape[0], dtype=torch.bool, device=dev)
                 for j, shot in enumerate(shots):
-                    q = _sample_blurred(pat_t[shot[p]], px, front, taps)
+                    if laser_planes:
+                        from .lasers import light_at_points
+
+                        q = light_at_points(P, w2p, projectors[p].planes).to(P.dtype)
+                    else:
+                        q = _sample_blurred(pat_t[shot[p]], px, front, taps)
                     Q[j][k] = q
                     need |= q.amax(dim=1) > 0
                 C = torch.tensor(p2w[:3, 3], dtype=torch.float32, device=dev)
@@ -425,7 +448,7 @@ def _synthesize(out, shape, mesh, views, size, pattern, illum, albedo, noise, se
                 stats["lit"].append(float(lit.float().mean()) if nv else 0.0)
                 frames.append(Frame(
                     image=f"images/{fi:03d}.png", camera="cam0", cam_to_world=c2w, view=v,
-                    projectors={p: FrameProjector(pattern=shot[p]) for p in pids}, mask=f"masks/{vname}.png",
+                    projectors={p: FrameProjector(pattern=shot[p], on=True) for p in pids}, mask=f"masks/{vname}.png",
                     gt={"depth": f"depth/{vname}.npy", "normal": f"normals/{vname}.png",
                         "clean": f"clean/{vname}.png"}))
                 if contact_sheet and len(sheet_rows) < 4:
@@ -523,6 +546,8 @@ def register(subparsers) -> None:
     p.add_argument("--noise", type=float, default=0.005, help="Gaussian noise sigma (default 0.005)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--proj-size", default="1024x768", help="projector size WxH (default 1024x768)")
+    p.add_argument("--laser-planes", action="store_true",
+                   help="projectors are laser line projectors defined by light planes (the crosslaser lines)")
     p.add_argument("--projector-blur", type=float, default=0.0, metavar="SIGMA",
                    help="projector defocus: Gaussian sigma in projector pixels, 5x5 taps (default 0 = sharp)")
     p.add_argument("--no-contact-sheet", action="store_true")
@@ -543,5 +568,5 @@ def _run(args) -> int:
     synthesize(args.out, shape=args.shape, mesh=args.mesh, views=args.views, size=size, pattern=args.pattern,
                illum=args.illum, albedo=args.albedo, noise=args.noise, seed=args.seed, device=device,
                ambient=args.ambient, proj_size=psize, contact_sheet=not args.no_contact_sheet,
-               threads=args.threads, projector_blur=args.projector_blur)
+               threads=args.threads, projector_blur=args.projector_blur, laser_planes=args.laser_planes)
     return 0

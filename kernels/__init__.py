@@ -15,6 +15,7 @@ _OPS = {
     "occupancy_alpha": "occupancy",
     "render_pattern": "render",
     "project_pattern": "project",
+    "laser_light": "project",
     "raycast_mesh": "raycast",
 }
 

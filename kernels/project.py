@@ -271,3 +271,207 @@ def identity_blur(n_proj: int, n: int = 1, device="cpu") -> torch.Tensor:
     b = torch.zeros(n_proj, n * n, device=device)
     b[:, (n * n) // 2] = 1.0
     return b
+
+
+# ----------------------------------------------------------------------------------------
+# Laser-plane projectors: light evaluated from the planes, no pattern image
+# ----------------------------------------------------------------------------------------
+PLANE_FLOATS = 12  # per plane: normal (3), offset, fan axis in the plane (3, unit), cos(fan/2), colour (3), sigma
+
+
+@wp.func
+def _laser_plane(pl: wp.array3d(dtype=float), k: int, l: int, X: wp.vec3):
+    """(light value without colour, d value / d X) of plane l of laser k at projector point X."""
+    n = wp.vec3(pl[k, l, 0], pl[k, l, 1], pl[k, l, 2])
+    sig = pl[k, l, 11]
+    if sig <= 0.0:
+        return float(0.0), wp.vec3(0.0)
+    nx = wp.dot(n, X)
+    v = X - nx * n
+    u = wp.vec3(pl[k, l, 4], pl[k, l, 5], pl[k, l, 6])
+    vn = wp.length(v)
+    if vn <= 0.0 or wp.dot(v, u) < pl[k, l, 7] * vn:
+        return float(0.0), wp.vec3(0.0)
+    dist = nx - pl[k, l, 3]
+    g = wp.exp(-0.5 * dist * dist / (sig * sig))
+    return g, (-g * dist / (sig * sig)) * n
+
+
+@wp.kernel
+def _laser_fwd(pos: wp.array(dtype=wp.vec3), ray_index: wp.array(dtype=wp.int32), ray_frame: wp.array(dtype=wp.int32),
+               W: wp.array2d(dtype=mat34), laser_on: wp.array2d(dtype=wp.int32), planes: wp.array3d(dtype=float),
+               out_q: wp.array(dtype=wp.vec3)):
+    i = wp.tid()
+    f = ray_frame[ray_index[i]]
+    p = pos[i]
+    q = wp.vec3(0.0)
+    for k in range(laser_on.shape[1]):
+        if laser_on[f, k] != 0:
+            X = _transform(W[f, k], p)
+            for l in range(planes.shape[1]):
+                g, gX = _laser_plane(planes, k, l, X)
+                q += g * wp.vec3(planes[k, l, 8], planes[k, l, 9], planes[k, l, 10])
+    out_q[i] = q
+
+
+@wp.kernel
+def _laser_bwd(pos: wp.array(dtype=wp.vec3), offsets: wp.array(dtype=wp.int32), counts: wp.array(dtype=wp.int32),
+               ray_frame: wp.array(dtype=wp.int32), W: wp.array2d(dtype=mat34), laser_on: wp.array2d(dtype=wp.int32),
+               planes: wp.array3d(dtype=float), g_q: wp.array(dtype=wp.vec3), need_pos: int, need_W: int,
+               d_pos: wp.array(dtype=wp.vec3), d_W: wp.array(dtype=float)):
+    r = wp.tid()
+    start = offsets[r]
+    cnt = counts[r]
+    if cnt == 0:
+        return
+    f = ray_frame[r]
+    P = laser_on.shape[1]
+    for k in range(P):
+        if laser_on[f, k] != 0:
+            Wf = W[f, k]
+            accW = wp.vec4(0.0)
+            accW1 = wp.vec4(0.0)
+            accW2 = wp.vec4(0.0)
+            for i in range(start, start + cnt):
+                p = pos[i]
+                X = _transform(Wf, p)
+                gq = g_q[i]
+                gX = wp.vec3(0.0)
+                for l in range(planes.shape[1]):
+                    g, dg = _laser_plane(planes, k, l, X)
+                    gX += wp.dot(gq, wp.vec3(planes[k, l, 8], planes[k, l, 9], planes[k, l, 10])) * dg
+                if need_pos != 0:
+                    d_pos[i] = d_pos[i] + wp.vec3(
+                        Wf[0, 0] * gX[0] + Wf[1, 0] * gX[1] + Wf[2, 0] * gX[2],
+                        Wf[0, 1] * gX[0] + Wf[1, 1] * gX[1] + Wf[2, 1] * gX[2],
+                        Wf[0, 2] * gX[0] + Wf[1, 2] * gX[1] + Wf[2, 2] * gX[2])
+                ph = wp.vec4(p[0], p[1], p[2], 1.0)
+                accW += gX[0] * ph
+                accW1 += gX[1] * ph
+                accW2 += gX[2] * ph
+            if need_W != 0:
+                base = (f * P + k) * 12
+                for j in range(4):
+                    wp.atomic_add(d_W, base + j, accW[j])
+                    wp.atomic_add(d_W, base + 4 + j, accW1[j])
+                    wp.atomic_add(d_W, base + 8 + j, accW2[j])
+
+
+def _check_laser(pos, proj_W, laser_on, planes) -> None:
+    if proj_W.ndim != 4 or tuple(proj_W.shape[2:]) != (3, 4):
+        raise ValueError(f"proj_W must be [F, P, 3, 4], got {tuple(proj_W.shape)}")
+    F, P = proj_W.shape[:2]
+    if tuple(laser_on.shape) != (F, P):
+        raise ValueError(f"laser_on must be [F={F}, P={P}], got {tuple(laser_on.shape)}")
+    if planes.ndim != 3 or planes.shape[0] != P or planes.shape[2] != PLANE_FLOATS:
+        raise ValueError(f"planes must be [P={P}, L, {PLANE_FLOATS}], got {tuple(planes.shape)}")
+
+
+class _LaserLight(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, pos, proj_W, ray_index, offsets, counts, ray_frame, laser_on, planes):
+        out = torch.zeros((pos.shape[0], 3), dtype=torch.float32, device=pos.device)
+        _warp.launch(_laser_fwd, pos.shape[0], [_wp(pos, wp.vec3), _wp(ray_index), _wp(ray_frame),
+                                                _wp(proj_W, mat34), _wp(laser_on), _wp(planes)],
+                     pos, outputs=[_wp(out, wp.vec3)])
+        ctx.save_for_backward(pos, proj_W, offsets, counts, ray_frame, laser_on, planes)
+        return out
+
+    @staticmethod
+    def backward(ctx, g_q):
+        pos, proj_W, offsets, counts, ray_frame, laser_on, planes = ctx.saved_tensors
+        need = ctx.needs_input_grad[:2]
+        if not any(need):
+            return (None,) * 8
+        dev = pos.device
+        d_pos = torch.zeros_like(pos) if need[0] else torch.zeros((1, 3), device=dev)
+        d_W = torch.zeros_like(proj_W) if need[1] else torch.zeros((1,), device=dev)
+        _warp.launch(_laser_bwd, offsets.shape[0],
+                     [_wp(pos, wp.vec3), _wp(offsets), _wp(counts), _wp(ray_frame), _wp(proj_W, mat34),
+                      _wp(laser_on), _wp(planes), _wp(_f32(g_q), wp.vec3), int(need[0]), int(need[1])],
+                     pos, outputs=[_wp(d_pos, wp.vec3), _wp(d_W.view(-1))])
+        return (d_pos if need[0] else None, d_W if need[1] else None) + (None,) * 6
+
+
+def laser_light(
+    pos: torch.Tensor,  # [S, 3] float32, normalised space
+    ray_index: torch.Tensor,  # [S] int32
+    offsets: torch.Tensor,  # [R] int32
+    counts: torch.Tensor,  # [R] int32
+    ray_frame: torch.Tensor,  # [R] int32
+    proj_W: torch.Tensor,  # [F, P, 3, 4] float32, normalised point -> projector coords (world units)
+    laser_on: torch.Tensor,  # [F, P] int32, 1 where projector k is a laser lit in frame f
+    planes: torch.Tensor,  # [P, L, 12] float32 (see PLANE_FLOATS; sigma 0 = padding)
+) -> torch.Tensor:
+    """Light of laser-plane projectors at each sample, evaluated from the planes.
+
+    For laser k lit in frame f, X = W[f, k] [P, 1] and each plane (unit n, offset d, unit
+    in-plane fan axis u, c = cos(fan / 2), colour rgb, sigma)::
+
+        v = X - (n.X) n;   inside = |v| > 0 and u.v >= c |v|
+        Q += rgb * inside * exp(-(n.X - d)^2 / (2 sigma^2))
+
+    Differentiable in ``pos`` and ``proj_W`` (the fan edge is a hard cut, like a pattern's
+    border). Warp forward per sample, backward per ray.
+
+    Returns:
+        [S, 3] float32.
+    """
+    _check_laser(pos, proj_W, laser_on, planes)
+    return _LaserLight.apply(_f32(pos), _f32(proj_W), _i32(ray_index), _i32(offsets), _i32(counts), _i32(ray_frame),
+                             _i32(laser_on), _f32(planes))
+
+
+def laser_light_torch(
+    pos: torch.Tensor,  # [S, 3]
+    ray_index: torch.Tensor,  # [S] int32
+    offsets: torch.Tensor,  # [R] int32
+    counts: torch.Tensor,  # [R] int32
+    ray_frame: torch.Tensor,  # [R] int32
+    proj_W: torch.Tensor,  # [F, P, 3, 4]
+    laser_on: torch.Tensor,  # [F, P] int32
+    planes: torch.Tensor,  # [P, L, 12]
+) -> torch.Tensor:
+    """Pure-torch twin of :func:`laser_light` (in ``pos``'s dtype, for gradcheck)."""
+    _check_laser(pos, proj_W, laser_on, planes)
+    dtype = pos.dtype
+    frame_s = ray_frame.long()[ray_index.long()]
+    q = torch.zeros((pos.shape[0], 3), dtype=dtype, device=pos.device)
+    pl = planes.to(dtype)
+    for k in range(proj_W.shape[1]):
+        on = laser_on.long()[frame_s, k] != 0  # [S]
+        Wk = proj_W[frame_s, k].to(dtype)
+        X = (Wk[:, :, 0] * pos[:, 0:1] + Wk[:, :, 1] * pos[:, 1:2] + Wk[:, :, 2] * pos[:, 2:3]) + Wk[:, :, 3]
+        for l in range(pl.shape[1]):
+            n, d, u, c, rgb, sig = pl[k, l, 0:3], pl[k, l, 3], pl[k, l, 4:7], pl[k, l, 7], pl[k, l, 8:11], pl[k, l, 11]
+            if float(sig) <= 0:
+                continue
+            nx = X @ n
+            v = X - nx[:, None] * n
+            vn = v.norm(dim=-1)
+            inside = on & (vn > 0) & ((v @ u) >= c * vn)
+            dist = nx - d
+            g = torch.exp(-0.5 * dist * dist / (sig * sig))
+            q = q + (g * inside.to(dtype))[:, None] * rgb
+    return q
+
+
+def pack_planes(planes_per_projector, device="cpu") -> torch.Tensor:
+    """[P, L, 12] float32 from, per projector, a list of planes (objects with normal, offset,
+    colour, width (FWHM), fan_deg, axis) or None (a pattern projector: an all-padding row)."""
+    import math
+
+    L = max([len(p) for p in planes_per_projector if p] or [1])
+    out = torch.zeros(len(planes_per_projector), L, PLANE_FLOATS, dtype=torch.float64)
+    for k, pls in enumerate(planes_per_projector):
+        for l, p in enumerate(pls or []):
+            n = torch.as_tensor(p.normal, dtype=torch.float64)
+            n = n / n.norm()
+            a = torch.as_tensor(p.axis, dtype=torch.float64)
+            u = a - (a @ n) * n
+            u = u / u.norm()
+            out[k, l, 0:3], out[k, l, 3], out[k, l, 4:7] = n, float(p.offset), u
+            out[k, l, 7] = math.cos(math.radians(p.fan_deg) / 2)
+            out[k, l, 8:11] = torch.as_tensor(p.colour, dtype=torch.float64)
+            out[k, l, 11] = float(p.width) / (2 * math.sqrt(2 * math.log(2)))  # FWHM -> sigma
+    return out.to(torch.float32).to(device)

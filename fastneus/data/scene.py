@@ -43,14 +43,40 @@ class Camera:
 
 
 @dataclass
+class LaserPlane:
+    """One light plane of a laser line projector, in the projector's frame (world units).
+
+    Points X with ``normal . X = offset`` are on the plane's centre; the light falls off as a
+    Gaussian of the distance to it with full width at half maximum ``width``, and exists only
+    inside the fan: the angle between X's in-plane direction and ``axis`` (projected onto the
+    plane) is at most ``fan_deg / 2``.
+    """
+
+    normal: np.ndarray  # [3] unit
+    offset: float
+    colour: np.ndarray  # [3] RGB in [0, 1]
+    width: float        # FWHM of the sheet thickness (world units)
+    fan_deg: float      # full fan angle (degrees)
+    axis: np.ndarray = field(default_factory=lambda: np.array([0.0, 0.0, 1.0]))  # [3] fan centre direction
+
+
+@dataclass
 class Projector:
-    """Projector intrinsics; ``proj_to_cam`` [4,4] rigs it to the frame's camera, None = free."""
+    """Projector intrinsics; ``proj_to_cam`` [4,4] rigs it to the frame's camera, None = free.
+
+    A laser-plane projector (``planes`` given, ``kind == "laser"``) has no image: K is the
+    identity and the size 1 x 1 in memory, and its light is evaluated from the planes."""
 
     id: str
     K: np.ndarray  # [3, 3] float64
     width: int
     height: int
     proj_to_cam: np.ndarray | None = None  # [4, 4] float64 or None (pose given per frame)
+    planes: list[LaserPlane] | None = None
+
+    @property
+    def kind(self) -> str:
+        return "laser" if self.planes is not None else "pattern"
 
 
 @dataclass
@@ -63,10 +89,12 @@ class Pattern:
 
 @dataclass
 class FrameProjector:
-    """What one projector does in one frame: the pattern shown (None = off), free pose."""
+    """What one projector does in one frame: the pattern shown (None = off), free pose;
+    a laser projector has no pattern and is lit when ``on``."""
 
     pattern: str | None = None
     proj_to_world: np.ndarray | None = None  # [4, 4] float64, only for free projectors
+    on: bool = True  # laser projectors only
 
 
 @dataclass
@@ -301,6 +329,15 @@ class Scene:
             p = f"projectors.{pid}"
             pr = _dict(pr, file, p)
             p2c = pr.get("proj_to_cam")
+            kind = pr.get("kind", "pattern")
+            if kind not in ("pattern", "laser"):
+                raise _err(f"unknown projector kind {kind!r}; use pattern or laser", file, f"{p}.kind")
+            if kind == "laser":
+                projectors[pid] = Projector(
+                    id=pid, K=np.eye(3), width=1, height=1,
+                    proj_to_cam=None if p2c is None else check_pose(p2c, file, f"{p}.proj_to_cam"),
+                    planes=parse_planes(_req(pr, "planes", file, p), file, f"{p}.planes"))
+                continue
             projectors[pid] = Projector(
                 id=pid, K=_intrinsics(_req(pr, "K", file, p), file, f"{p}.K"),
                 width=_int(_req(pr, "width", file, p), file, f"{p}.width"),
@@ -342,6 +379,12 @@ class Scene:
                     raise _err(f"unknown projector id {pid!r}; known: {sorted(projectors)}", file, pp)
                 fp = _dict(fp, file, pp)
                 pat = fp.get("pattern")
+                on = fp.get("on", True)
+                if not isinstance(on, bool):
+                    raise _err("expected true or false", file, f"{pp}.on")
+                if projectors[pid].kind == "laser" and pat is not None:
+                    raise _err(f"projector {pid!r} is a laser (planes); it shows no pattern, use on: true/false",
+                               file, f"{pp}.pattern")
                 if pat is not None:
                     if not isinstance(pat, str) or pat not in patterns:
                         raise _err(f"unknown pattern id {pat!r}; known: {sorted(patterns)}", file, f"{pp}.pattern")
@@ -359,7 +402,7 @@ class Scene:
                 elif p2w is not None:
                     raise _err(f"projector {pid!r} is rigged to the camera (proj_to_cam); "
                                "a per-frame proj_to_world would contradict it", file, f"{pp}.proj_to_world")
-                fps[pid] = FrameProjector(pattern=pat, proj_to_world=p2w)
+                fps[pid] = FrameProjector(pattern=pat, proj_to_world=p2w, on=on)
             gt = {}
             for k, v in _dict(f.get("gt", {}), file, f"{p}.gt").items():
                 if k not in GT_KEYS:
@@ -406,7 +449,8 @@ class Scene:
             fd: dict[str, Any] = {"image": rp(f.image), "camera": f.camera, "cam_to_world": _list(f.cam_to_world),
                                   "view": int(f.view), "projectors": {}}
             for pid, fp in f.projectors.items():
-                e: dict[str, Any] = {"pattern": fp.pattern}
+                e: dict[str, Any] = {"on": bool(fp.on)} if self.projectors[pid].kind == "laser" else \
+                    {"pattern": fp.pattern}
                 if fp.proj_to_world is not None:
                     e["proj_to_world"] = _list(fp.proj_to_world)
                 fd["projectors"][pid] = e
@@ -421,8 +465,10 @@ class Scene:
             "bounds": {"center": _list(self.bounds.center), "radius": float(self.bounds.radius)},
             "cameras": {c.id: {"K": _list(c.K), "width": c.width, "height": c.height, "dist": _list(c.dist)}
                         for c in self.cameras.values()},
-            "projectors": {p.id: {"K": _list(p.K), "width": p.width, "height": p.height,
-                                  "proj_to_cam": _list(p.proj_to_cam)} for p in self.projectors.values()},
+            "projectors": {p.id: ({"K": _list(p.K), "width": p.width, "height": p.height,
+                                   "proj_to_cam": _list(p.proj_to_cam)} if p.kind == "pattern" else
+                                  {"kind": "laser", "proj_to_cam": _list(p.proj_to_cam),
+                                   "planes": planes_to_list(p.planes)}) for p in self.projectors.values()},
             "patterns": {q.id: {"file": rp(q.file)} for q in self.patterns.values()},
             "frames": frames,
             "illumination": {"i_r": float(il.i_r), "i_b": float(il.i_b), "ambient": float(il.ambient),
@@ -488,6 +534,11 @@ class Scene:
     def active_projectors(self, i: int) -> list[tuple[str, str]]:
         """(projector id, pattern id) of every projector showing a pattern in frame ``i``."""
         return [(pid, fp.pattern) for pid, fp in self.frames[i].projectors.items() if fp.pattern is not None]
+
+    def active_lasers(self, i: int) -> list[str]:
+        """Ids of the laser-plane projectors lit in frame ``i``."""
+        return [pid for pid, fp in self.frames[i].projectors.items()
+                if self.projectors[pid].kind == "laser" and fp.on]
 
     def normalisation(self) -> np.ndarray:
         """[4, 4] float64 S mapping normalised -> world coordinates."""
@@ -582,6 +633,44 @@ class Scene:
         s = copy.copy(self)
         s.frames = [copy.deepcopy(self.frames[i]) for i in idx]
         return s
+
+
+def parse_planes(value: Any, file, fld: str) -> list[LaserPlane]:
+    """Validate a list of plane objects {normal, offset, colour, width, fan_deg[, axis]}.
+
+    The normal is normalised (it must be non-zero); ``offset`` is in the same units as
+    ``width`` (world units in scene.json)."""
+    if not isinstance(value, list) or not value:
+        raise _err("expected a non-empty list of planes", file, fld)
+    out = []
+    for j, pl in enumerate(value):
+        p = f"{fld}[{j}]"
+        pl = _dict(pl, file, p)
+        n = _matrix(_req(pl, "normal", file, p), (3,), file, f"{p}.normal")
+        if np.linalg.norm(n) < 1e-9:
+            raise _err("normal must be non-zero", file, f"{p}.normal")
+        col = _matrix(pl.get("colour", pl.get("color", [1.0, 1.0, 1.0])), (3,), file, f"{p}.colour")
+        if np.any(col < 0) or np.any(col > 1):
+            raise _err("colour values must be in [0, 1]", file, f"{p}.colour")
+        width = _num(_req(pl, "width", file, p), file, f"{p}.width")
+        if width <= 0:
+            raise _err("must be > 0", file, f"{p}.width")
+        fan = _num(pl.get("fan_deg", 90.0), file, f"{p}.fan_deg")
+        if not 0 < fan <= 180:
+            raise _err("must be in (0, 180] degrees", file, f"{p}.fan_deg")
+        axis = _matrix(pl.get("axis", [0.0, 0.0, 1.0]), (3,), file, f"{p}.axis")
+        nn = n / np.linalg.norm(n)
+        if np.linalg.norm(axis - nn * (axis @ nn)) < 1e-6:
+            raise _err("axis must not be parallel to the normal (it gives the fan's centre direction in the plane)",
+                       file, f"{p}.axis")
+        out.append(LaserPlane(normal=nn, offset=_num(pl.get("offset", 0.0), file, f"{p}.offset"), colour=col,
+                              width=width, fan_deg=fan, axis=axis / np.linalg.norm(axis)))
+    return out
+
+
+def planes_to_list(planes: list[LaserPlane]) -> list[dict]:
+    return [{"normal": _list(p.normal), "offset": float(p.offset), "colour": _list(p.colour), "width": float(p.width),
+             "fan_deg": float(p.fan_deg), "axis": _list(p.axis)} for p in planes]
 
 
 def rigid_inverse(T: np.ndarray) -> np.ndarray:

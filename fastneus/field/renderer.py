@@ -57,9 +57,19 @@ def render_rays(field, bits: torch.Tensor, grid_res: int, proj, origins: torch.T
     pattern_on = cfg.use_pattern if use_pattern is None else use_pattern
     pat = proj.pattern if pattern_on else torch.full_like(proj.pattern, -1)
     q_ext = None
-    if getattr(proj, "blur", None) is not None:  # real-rig light model (fastneus.rig): Q computed apart
-        q_ext = get_op("project_pattern", cfg.backend)(pos, ray_index, offsets, counts, fidx, proj.K, proj.W, pat,
-                                                       proj.store, proj.blur)
+    blur, laser_on = getattr(proj, "blur", None), getattr(proj, "laser_on", None)
+    if blur is not None or laser_on is not None:  # real-rig light models (fastneus.rig): Q computed apart
+        if blur is not None or bool((pat >= 0).any()):
+            if blur is None:
+                from fastneus.kernels.project import identity_blur
+
+                blur = identity_blur(pat.shape[1], device=device)
+            q_ext = get_op("project_pattern", cfg.backend)(pos, ray_index, offsets, counts, fidx, proj.K, proj.W,
+                                                           pat, proj.store, blur)
+        if laser_on is not None and pattern_on:
+            ql = get_op("laser_light", cfg.backend)(pos, ray_index, offsets, counts, fidx, proj.W, laser_on,
+                                                    proj.planes)
+            q_ext = ql if q_ext is None else q_ext + ql
     out = render(sdf, grad, color, pos, t0, t1, ray_index, offsets, counts, dirs, fidx,
                  proj.K, proj.W, pat, proj.store, field.inv_s(), float(cos_anneal), i_r, i_b,
                  return_weights=with_normals, q_ext=q_ext)

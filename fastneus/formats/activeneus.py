@@ -293,6 +293,10 @@ def write_activeneus(scene: Scene, out: str | os.PathLike, downscale: int = 1) -
     Raises:
         FastneusError: free (non rig-attached) projectors, or a bad ``downscale``.
     """
+    lasers = [p for p, pj in scene.projectors.items() if pj.kind == "laser"]
+    if lasers:
+        raise FastneusError(f"laser-plane projectors ({', '.join(lasers)}) have no ActiveNeuS form; keep the "
+                            "fastneus format", field=f"projectors.{lasers[0]}")
     import cv2
 
     from fastneus.io import atomic_write, atomic_write_image

@@ -83,6 +83,10 @@ def _list_images(folder: str, what: str) -> list[Path]:
 
 def _import_calib(args) -> int:
     from fastneus.formats.opencv_calib import make_scene_from_calibration
+    from fastneus.lasers import read_laser_planes
+
+    if not args.patterns and not args.laser_planes:
+        raise FastneusError("give --patterns (a pattern projector) and/or --laser-planes FILE", field="--patterns")
 
     bounds = None
     if args.bounds:
@@ -97,8 +101,9 @@ def _import_calib(args) -> int:
         warnings.simplefilter("always")
         scene = make_scene_from_calibration(
             args.calib if len(args.calib) > 1 else args.calib[0], _list_images(args.images, "--images"),
-            _list_images(args.patterns, "--patterns"), args.poses or args.colmap, args.out, units=args.units,
-            proj_size=args.proj_size, colmap_scale=args.colmap_scale, bounds=bounds)
+            _list_images(args.patterns, "--patterns") if args.patterns else [], args.poses or args.colmap, args.out,
+            units=args.units, proj_size=args.proj_size, colmap_scale=args.colmap_scale, bounds=bounds,
+            lasers=read_laser_planes(args.laser_planes, units=args.units) if args.laser_planes else None)
     for w in caught:
         print(f"warning: {w.message}")
     print(f"wrote fastneus scene with {len(scene.frames)} frames -> {Path(args.out) / 'scene.json'}")
@@ -119,7 +124,9 @@ def register(subparsers) -> None:
                                           "OpenCV stereo, procam-calibration layouts), photos, patterns and poses.")
     p.add_argument("calib", nargs="+", help="calibration YAML/XML (several files are merged)")
     p.add_argument("--images", required=True, help="folder of photos (sorted = frame order)")
-    p.add_argument("--patterns", required=True, help="folder (one pattern per photo, or one for all) or a file")
+    p.add_argument("--patterns", help="folder (one pattern per photo, or one for all) or a file")
+    p.add_argument("--laser-planes", help="laser plane calibration (YAML/JSON, layout in docs/REAL-RIGS.md): laser "
+                                          "line projectors lit in every photo")
     g = p.add_mutually_exclusive_group(required=True)
     g.add_argument("--poses", help="scene.json whose frames give cam_to_world in order")
     g.add_argument("--colmap", help="COLMAP text model folder (cameras.txt, images.txt)")

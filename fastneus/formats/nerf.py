@@ -306,6 +306,9 @@ def write_nerf(scene: Scene, out: str | os.PathLike, copy_files: bool = True) ->
     pat_files = {q.id: put(q.file, "patterns", q.id) for q in scene.patterns.values()}
     proj_block: dict[str, Any] = {}
     for pid, pj in scene.projectors.items():
+        if pj.kind == "laser":
+            raise FastneusError("laser-plane projectors cannot be written to transforms.json; keep the fastneus "
+                                "format", field=f"projectors.{pid}")
         e = intr(pj.K, pj.width, pj.height)
         if pj.proj_to_cam is not None:
             e["proj_to_cam"] = pj.proj_to_cam.tolist()
