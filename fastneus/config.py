@@ -110,6 +110,11 @@ class Config:
     projector_blur: int = 0            # learned n x n separable blur of each projector's pattern (0 = off; odd n <= 7)
     lr_blur: float = 5e-3              # on the x / y kernel profiles (identity init, each normalised to sum 1)
     blur_warmup_frac: float = 0.1      # kernels frozen for this fraction of the run
+    refraction: bool = True            # use the scene's flat ports (underwater housings) for rays and projectors
+    medium: str = "auto"               # learned water attenuation + back-scatter: auto (on when the scene has a
+                                       # port) | on | off
+    lr_medium: float = 1e-2            # on log attenuation / back-scatter coefficients and the veiling light
+    medium_far: float = 20.0           # range (world units) of rays that hit nothing, for their back-scatter
 
     # --- export ---
     mesh_resolution: int = 256
@@ -125,6 +130,7 @@ _CHOICES = {
     "illum_init": ("scene", "ones"),
     "masks": ("auto", "on", "off"),
     "bg_prior": ("auto", "on", "off"),
+    "medium": ("auto", "on", "off"),
 }
 # fractions of the run: each must lie in [0, 1]
 _FRACTIONS = ("occ_warmup_frac", "c2f_frac", "inv_s_floor_frac", "warmup_frac", "color_warmup_frac",
@@ -138,7 +144,8 @@ _LEGACY_STEPS = {"occ_warmup_steps": "occ_warmup_frac", "warmup_steps": "warmup_
 _POSITIVE = {"steps", "target_samples", "init_rays", "min_rays", "max_rays", "march_step",
              "max_samples_per_ray", "occ_resolution", "occ_update_every", "levels", "features",
              "log2_table", "base_res", "finest_res", "sdf_hidden", "geo_features", "color_hidden",
-             "lr", "adam_eps", "mesh_resolution", "log_every", "save_every", "lr_pose", "lr_blur"}
+             "lr", "adam_eps", "mesh_resolution", "log_every", "save_every", "lr_pose", "lr_blur", "lr_medium",
+             "medium_far"}
 
 
 def preset_names() -> list[str]:

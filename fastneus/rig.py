@@ -1,8 +1,10 @@
 """What a real rig gets wrong, learned during training: pose corrections of cameras and
-projectors, a per-projector pattern blur (defocus), and (later sections) the water medium.
+projectors, a per-projector pattern blur (defocus), and the water medium (attenuation and
+back-scatter; the flat-port refraction itself is geometry from the scene, applied in
+``fastneus.sampling``).
 
 The trainer owns one :class:`Rig`. It is inert unless a config key turns a part on
-(``pose_refine``, ``projector_blur``), so the default step is unchanged. Hooks, all cheap when off:
+(``pose_refine``, ``projector_blur``, ``medium``), so the default step is unchanged. Hooks, all cheap when off:
 
 - :meth:`Rig.rays` corrects a batch's camera rays (differentiable in the corrections);
 - :meth:`Rig.projection` returns the per-frame projector data with corrected poses and the
@@ -120,6 +122,15 @@ class Rig(torch.nn.Module):
         self._bank, self._proj = bank, proj
         if self.pose_on:
             self._init_pose_data(scene)
+        # water: attenuation beta_d and back-scatter beta_b (per channel, 1 / world unit), veiling light b_inf
+        wet = any(c.port is not None for c in scene.cameras.values()) or \
+            any(p.port is not None for p in scene.projectors.values())
+        self.medium_on = cfg.medium == "on" or (cfg.medium == "auto" and wet)
+        self.log_beta_d = torch.nn.Parameter(torch.full((3,), math.log(0.05), device=self.device))
+        self.log_beta_b = torch.nn.Parameter(torch.full((3,), math.log(0.05), device=self.device))
+        self.b_inf_raw = torch.nn.Parameter(torch.zeros(3, device=self.device))
+        if self.medium_on:
+            self._init_veiling_light(bank)
 
     # ------------------------------------------------------------------ setup
     def _init_pose_data(self, scene) -> None:
@@ -140,13 +151,51 @@ class Rig(torch.nn.Module):
         self.register_buffer("cam_to_proj", A.float().to(self.device), persistent=False)
         self.register_buffer("rigged", rigged.to(self.device), persistent=False)
 
+    def _init_veiling_light(self, bank) -> None:
+        """Start the veiling light at the colour of the background (pixels outside the masks,
+        else the darkest 5% of pixels), where the far range makes back-scatter ~= b_inf."""
+        g = torch.Generator(device=bank.rgb.device).manual_seed(0)
+        idx = torch.randint(0, bank.n_pixels, (min(bank.n_pixels, 200_000),), device=bank.rgb.device, generator=g)
+        rgb = bank.rgb[idx].float() / 255.0
+        if bank.mask is not None and bool((bank.mask[idx] < 128).any()):
+            bg = rgb[bank.mask[idx] < 128].mean(0)
+        else:
+            bright = rgb.sum(-1)
+            bg = rgb[bright <= torch.quantile(bright, 0.05)].mean(0)
+        bg = bg.clamp(0.01, 0.95) / (1 - math.exp(-0.05 * self.cfg.medium_far))
+        with torch.no_grad():
+            self.b_inf_raw.copy_(torch.logit(bg.clamp(0.01, 0.99)).to(self.device))
+
+    def medium_params(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """(beta_d [3], beta_b [3], b_inf [3]): attenuation and back-scatter coefficients (1 / world
+        unit) and the veiling light colour."""
+        return self.log_beta_d.exp(), self.log_beta_b.exp(), torch.sigmoid(self.b_inf_raw)
+
+    def composite(self, color: torch.Tensor, out: dict, background: float) -> torch.Tensor:
+        """Observed colour of rendered rays: ``color + background (1 - opacity)`` in air; in water
+
+            C = color exp(-beta_d r) + b_inf (1 - exp(-beta_b r)),   r = R (depth + (1 - opacity) far)
+
+        (r: expected range in the water along the camera ray, world units; R = bounds radius).
+
+        Args:
+            color: [B, 3] rendered colour (or texture); out: the render dict (opacity [B], depth [B]).
+        """
+        op = out["opacity"]
+        if not self.medium_on:
+            return color + background * (1.0 - op)[:, None]
+        bd, bb, binf = (x.to(color.device) for x in self.medium_params())
+        r = (out["depth"] * self.radius + (1.0 - op) * self.cfg.medium_far)[:, None]
+        return color * torch.exp(-bd * r) + binf * (1.0 - torch.exp(-bb * r))
+
     @property
     def active(self) -> bool:
-        return self.pose_on or self.blur_on
+        return self.pose_on or self.blur_on or self.medium_on
 
     def kernel_ops(self) -> tuple[str, ...]:
         """Extra kernel ops a training step uses (compiled before the clock starts)."""
-        ops = ("project_pattern",) if self.blur_on or self._proj.laser_on is not None else ()
+        q_ext = self.blur_on or self.medium_on or self._proj.laser_on is not None or self._proj.port is not None
+        ops = ("project_pattern",) if q_ext else ()
         return ops + (("laser_light",) if self._proj.laser_on is not None else ())
 
     def param_groups(self, cfg) -> list[dict]:
@@ -156,6 +205,9 @@ class Rig(torch.nn.Module):
             groups.append({"params": [self.cam_xi, self.proj_xi], "lr": cfg.lr_pose, "name": "rig_pose"})
         if self.blur_on:
             groups.append({"params": [self.blur_raw], "lr": cfg.lr_blur, "name": "rig_blur"})
+        if self.medium_on:
+            groups.append({"params": [self.log_beta_d, self.log_beta_b, self.b_inf_raw], "lr": cfg.lr_medium,
+                           "name": "rig_medium"})
         return groups
 
     def lr_gate(self, name: str, progress: float) -> float:
@@ -187,10 +239,14 @@ class Rig(torch.nn.Module):
         return (prof[:, 1, :, None] * prof[:, 0, None, :]).reshape(prof.shape[0], -1)
 
     def light_model(self, proj):
-        """``proj`` with the learned light model attached (the blur), poses untouched."""
-        if not self.blur_on:
-            return proj
-        return dataclasses.replace(proj, blur=self.blur_kernels())
+        """``proj`` with the learned light model attached (blur, the medium's attenuation of the
+        projected light), poses untouched."""
+        kw = {}
+        if self.blur_on:
+            kw["blur"] = self.blur_kernels()
+        if self.medium_on:
+            kw["sigma"] = self.medium_params()[0]
+        return dataclasses.replace(proj, **kw) if kw else proj
 
     def rays(self, batch: dict) -> dict:
         """Correct the camera rays of a :meth:`RayBank.sample` batch (a new dict; no-op when off).
@@ -291,6 +347,10 @@ class Rig(torch.nn.Module):
                                        [None if x is None else x.tolist() for x in v]) for k, v in e.items()}
                                for p, e in r["projectors"].items()},
             }
+        if self.medium_on:
+            bd, bb, binf = (x.detach().double().cpu().tolist() for x in self.medium_params())
+            d["medium"] = {"beta_d": bd, "beta_b": bb, "b_inf": binf, "far": self.cfg.medium_far,
+                           "note": "per RGB channel; beta in 1 / world unit"}
         if self.blur_on:
             k = self.blur_kernels().detach().double().cpu().numpy()
             d["blur"] = {"size": self.blur_n,

@@ -32,6 +32,26 @@ POSE_TOL = 1e-4  # tolerance of the rigidity check R^T R = I
 
 # --------------------------------------------------------------------------- dataclasses
 @dataclass
+class FlatPort:
+    """A flat port in front of a device in water (its own frame, world units): the glass's
+    inner face is ``normal . X = distance`` (normal unit, pointing into the water), then
+    ``thickness`` of glass, then water; refractive indices of air (inside), glass, water."""
+
+    normal: np.ndarray  # [3] unit
+    distance: float
+    thickness: float = 0.0
+    n_air: float = 1.0
+    n_glass: float = 1.5
+    n_water: float = 1.333
+
+    def row(self) -> list[float]:
+        """The kernel's 8-float row (``fastneus.kernels.project.port_row``)."""
+        from fastneus.kernels.project import port_row
+
+        return port_row(self.normal, self.distance, self.thickness, self.n_air, self.n_glass, self.n_water)
+
+
+@dataclass
 class Camera:
     """Pinhole camera intrinsics. ``K`` maps camera coords to continuous pixel coords."""
 
@@ -40,6 +60,7 @@ class Camera:
     width: int
     height: int
     dist: np.ndarray = field(default_factory=lambda: np.zeros(5))  # [5] k1 k2 p1 p2 k3
+    port: FlatPort | None = None  # underwater housing
 
 
 @dataclass
@@ -73,6 +94,7 @@ class Projector:
     height: int
     proj_to_cam: np.ndarray | None = None  # [4, 4] float64 or None (pose given per frame)
     planes: list[LaserPlane] | None = None
+    port: FlatPort | None = None  # underwater housing
 
     @property
     def kind(self) -> str:
@@ -320,7 +342,8 @@ class Scene:
                 id=cid, K=_intrinsics(_req(c, "K", file, p), file, f"{p}.K"),
                 width=_int(_req(c, "width", file, p), file, f"{p}.width"),
                 height=_int(_req(c, "height", file, p), file, f"{p}.height"),
-                dist=np.zeros(5) if dist is None else _matrix(dist, (5,), file, f"{p}.dist"))
+                dist=np.zeros(5) if dist is None else _matrix(dist, (5,), file, f"{p}.dist"),
+                port=parse_port(c.get("port"), file, f"{p}.port"))
         if not cameras:
             raise _err("no cameras", file, "cameras")
 
@@ -342,7 +365,8 @@ class Scene:
                 id=pid, K=_intrinsics(_req(pr, "K", file, p), file, f"{p}.K"),
                 width=_int(_req(pr, "width", file, p), file, f"{p}.width"),
                 height=_int(_req(pr, "height", file, p), file, f"{p}.height"),
-                proj_to_cam=None if p2c is None else check_pose(p2c, file, f"{p}.proj_to_cam"))
+                proj_to_cam=None if p2c is None else check_pose(p2c, file, f"{p}.proj_to_cam"),
+                port=parse_port(pr.get("port"), file, f"{p}.port"))
 
         patterns: dict[str, Pattern] = {}
         pattern_sizes: dict[str, tuple[int, int]] = {}
@@ -463,10 +487,13 @@ class Scene:
         return {
             "format": FORMAT, "version": VERSION, "units": self.units, "name": self.name,
             "bounds": {"center": _list(self.bounds.center), "radius": float(self.bounds.radius)},
-            "cameras": {c.id: {"K": _list(c.K), "width": c.width, "height": c.height, "dist": _list(c.dist)}
+            "cameras": {c.id: {"K": _list(c.K), "width": c.width, "height": c.height, "dist": _list(c.dist),
+                               **({"port": port_to_dict(c.port)} if c.port is not None else {})}
                         for c in self.cameras.values()},
             "projectors": {p.id: ({"K": _list(p.K), "width": p.width, "height": p.height,
-                                   "proj_to_cam": _list(p.proj_to_cam)} if p.kind == "pattern" else
+                                   "proj_to_cam": _list(p.proj_to_cam),
+                                   **({"port": port_to_dict(p.port)} if p.port is not None else {})}
+                                  if p.kind == "pattern" else
                                   {"kind": "laser", "proj_to_cam": _list(p.proj_to_cam),
                                    "planes": planes_to_list(p.planes)}) for p in self.projectors.values()},
             "patterns": {q.id: {"file": rp(q.file)} for q in self.patterns.values()},
@@ -666,6 +693,35 @@ def parse_planes(value: Any, file, fld: str) -> list[LaserPlane]:
         out.append(LaserPlane(normal=nn, offset=_num(pl.get("offset", 0.0), file, f"{p}.offset"), colour=col,
                               width=width, fan_deg=fan, axis=axis / np.linalg.norm(axis)))
     return out
+
+
+def parse_port(value: Any, file, fld: str) -> FlatPort | None:
+    """Validate a flat port {normal, distance, thickness?, n_air?, n_glass?, n_water?} (None = in air)."""
+    if value is None:
+        return None
+    d = _dict(value, file, fld)
+    n = _matrix(_req(d, "normal", file, fld), (3,), file, f"{fld}.normal")
+    if np.linalg.norm(n) < 1e-9:
+        raise _err("normal must be non-zero", file, f"{fld}.normal")
+    n = n / np.linalg.norm(n)
+    if n[2] <= 0.1:
+        raise _err("normal must point forward (z > 0.1 in the device frame: into the water)", file, f"{fld}.normal")
+    dist = _num(_req(d, "distance", file, fld), file, f"{fld}.distance")
+    thick = _num(d.get("thickness", 0.0), file, f"{fld}.thickness")
+    if dist <= 0 or thick < 0:
+        raise _err("distance must be > 0 and thickness >= 0", file, f"{fld}.distance")
+    idx = {k: _num(d.get(k, v), file, f"{fld}.{k}") for k, v in (("n_air", 1.0), ("n_glass", 1.5), ("n_water", 1.333))}
+    for k, v in idx.items():
+        if v < 1.0:
+            raise _err("refractive indices are >= 1", file, f"{fld}.{k}")
+    if idx["n_water"] < idx["n_air"]:
+        raise _err("n_water < n_air: the model needs the denser medium outside", file, f"{fld}.n_water")
+    return FlatPort(normal=n, distance=dist, thickness=thick, **idx)
+
+
+def port_to_dict(p: FlatPort) -> dict:
+    return {"normal": _list(p.normal), "distance": float(p.distance), "thickness": float(p.thickness),
+            "n_air": float(p.n_air), "n_glass": float(p.n_glass), "n_water": float(p.n_water)}
 
 
 def planes_to_list(planes: list[LaserPlane]) -> list[dict]:

@@ -58,14 +58,16 @@ def render_rays(field, bits: torch.Tensor, grid_res: int, proj, origins: torch.T
     pat = proj.pattern if pattern_on else torch.full_like(proj.pattern, -1)
     q_ext = None
     blur, laser_on = getattr(proj, "blur", None), getattr(proj, "laser_on", None)
-    if blur is not None or laser_on is not None:  # real-rig light models (fastneus.rig): Q computed apart
-        if blur is not None or bool((pat >= 0).any()):
+    port, sigma = getattr(proj, "port", None), getattr(proj, "sigma", None)
+    if blur is not None or laser_on is not None or port is not None or sigma is not None:
+        # real-rig light models (fastneus.rig): Q computed apart and handed to the render kernel
+        if blur is not None or port is not None or sigma is not None or bool((pat >= 0).any()):
             if blur is None:
                 from fastneus.kernels.project import identity_blur
 
                 blur = identity_blur(pat.shape[1], device=device)
             q_ext = get_op("project_pattern", cfg.backend)(pos, ray_index, offsets, counts, fidx, proj.K, proj.W,
-                                                           pat, proj.store, blur)
+                                                           pat, proj.store, blur, port=port, sigma=sigma)
         if laser_on is not None and pattern_on:
             ql = get_op("laser_light", cfg.backend)(pos, ray_index, offsets, counts, fidx, proj.W, laser_on,
                                                     proj.planes)

@@ -94,9 +94,10 @@ class Trainer:
         want_bg = not self.masks_used and cfg.bg_prior != "off" and cfg.bg_weight > 0
         self.bank = RayBank(scene, self.frames, self.device, load_masks=self.masks_used,
                             brightness_cdf=cfg.bright_fraction > 0,
-                            background=cfg.background if want_bg else None, bg_tolerance=cfg.bg_tolerance)
+                            background=cfg.background if want_bg else None, bg_tolerance=cfg.bg_tolerance,
+                            refraction=cfg.refraction)
         self.bg_used, self.bg_note = resolve_bg_prior(cfg, self.masks_used, self.bank.bg_fraction)
-        self.proj = build_projection(scene, self.frames, self.device)
+        self.proj = build_projection(scene, self.frames, self.device, refraction=cfg.refraction)
         self.rig = Rig(scene, self.frames, self.bank, self.proj, cfg, self.device)  # real-rig corrections
         self.field = SDFField(cfg, self.device)
         self.field.init_color_bias(self.bank.rgb.float().mean(0) / 255.0)
@@ -219,7 +220,7 @@ class Trainer:
         self.empty_steps = 0
         # the camera clips at 1: a rendered value above it is a saturated pixel, not an error
         # (unclipped, bright pattern pixels would pull i_r down on Normal-light scenes)
-        pred = (out["color"] + c.background * (1.0 - out["opacity"])[:, None]).clamp(max=1.0)
+        pred = self.rig.composite(out["color"], out, c.background).clamp(max=1.0)  # (+ water, fastneus.rig)
         err = (pred - batch["rgb"]).abs()
         loss_rgb = err.mean()
         grad = out["grad"]
