@@ -233,3 +233,31 @@ def test_import_calib_laser_plane_file(tmp_path):
     with pytest.raises(FastneusError) as e:
         read_laser_planes(f)
     assert e.value.field == "lasers.red.planes"
+
+
+def test_import_calib_cli_camera_only_with_laser_planes(tmp_path, capsys):
+    import cv2
+
+    from fastneus.cli import main
+    from test_formats import _write_fs
+
+    _write_fs(tmp_path / "cam.yml", {"cam_K": np.array([[30.0, 0, 11.5], [0, 30, 7.5], [0, 0, 1]]),
+                                     "cam_kc": np.zeros((1, 5))})
+    (tmp_path / "imgs").mkdir()
+    for i in range(2):
+        cv2.imwrite(str(tmp_path / "imgs" / f"{i:03d}.png"), np.zeros((16, 24, 3), np.uint8))
+    from fastneus.data import look_at
+
+    poses = [look_at(e, [0, 0, 0]).tolist() for e in ([1.0, 0, 0.5], [0, 1.0, 0.5])]
+    (tmp_path / "poses.json").write_text(json.dumps({"frames": [{"cam_to_world": T} for T in poses]}))
+    (tmp_path / "planes.yaml").write_text("lasers:\n  L:\n    planes:\n      - {normal: [1, 0, 0], width: 2, "
+                                          "fan_deg: 40, colour: [1, 0, 0]}\n")
+    base = ["import-calib", str(tmp_path / "cam.yml"), "--images", str(tmp_path / "imgs"), "--poses",
+            str(tmp_path / "poses.json")]
+    assert main(base + ["--out", str(tmp_path / "none")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "--laser-planes" in err and len(err.splitlines()) == 1
+    assert main(base + ["--laser-planes", str(tmp_path / "planes.yaml"), "--out", str(tmp_path / "s")]) == 0
+    s = Scene.load(tmp_path / "s")
+    assert list(s.projectors) == ["L"] and s.projectors["L"].planes[0].width == pytest.approx(0.002)
+    assert s.cameras["cam0"].K[0, 2] == pytest.approx(12.0)  # OpenCV -> fastneus pixel centres
