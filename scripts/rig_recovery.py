@@ -1,8 +1,13 @@
 """Real-rig recovery protocols (issue 12): does each model extension recover what a real rig
 gets wrong, and how much worse is the mesh without it?
 
-    python scripts/rig_recovery.py --device cuda --out DIR [--parts pose,blur,...]
-                                   [--budget 25] [--size 320] [--views 12] [--shape toy] [key=value ...]
+    python scripts/rig_recovery.py --device cuda --out DIR [--parts pose,blur,laser,water]
+                                   [--budget 15] [--size 320] [--views 12] [--shape toy] [key=value ...]
+
+All four parts are 11 training runs of ``--budget`` seconds each, plus synthesis, meshing
+(256^3) and evaluation per run: about 11 x (budget + ~10 s) on one H100, plus the first
+compilation of the Warp kernels on a fresh machine. Parts can run as separate calls
+(``--parts pose,blur`` then ``--parts laser,water`` with another ``--out``).
 
 Every part synthesises a scene with ``fastneus synth``'s rig (4 cross-laser projectors,
 known ground truth), then trains a few variants with the same time budget (the device's
@@ -40,7 +45,6 @@ proves the protocol runs, not the targets.
 from __future__ import annotations
 
 import argparse
-import json
 import time
 from pathlib import Path
 
@@ -59,7 +63,7 @@ def train(scene, device: str, budget: float, out: Path, extra: list[str]) -> tup
 
     preset = "fewview" if device.startswith("cuda") else "cpu-quick"
     length = [f"steps={args_steps}"] if args_steps else [f"time_budget={budget}"]
-    cfg = load_config(preset, length + list(extra))
+    cfg = load_config(preset, length + ["mesh_resolution=256"] + list(extra))
     t = time.perf_counter()
     trainer, m = train_scene(scene, cfg, out, device)
     m = {k: m.get(k) for k in GEOM + ["steps", "train_seconds"]}
@@ -192,7 +196,7 @@ def main() -> None:
     ap.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
     ap.add_argument("--out", required=True, help="results folder (created)")
     ap.add_argument("--parts", default=",".join(PARTS), help=f"comma list of {', '.join(PARTS)}")
-    ap.add_argument("--budget", type=float, default=20.0, help="training seconds per run")
+    ap.add_argument("--budget", type=float, default=15.0, help="training seconds per run")
     ap.add_argument("--steps", type=int, default=0, help="train this many steps instead of --budget seconds")
     ap.add_argument("--size", type=int, default=320, help="image size (square)")
     ap.add_argument("--proj-size", default="512x384", help="projector WxH")

@@ -48,7 +48,7 @@ from typing import Any
 
 import numpy as np
 
-from fastneus.data.scene import FORMAT, VERSION, Scene, image_size, rigid_inverse
+from fastneus.data.scene import FORMAT, VERSION, Scene, image_size
 from fastneus.errors import FastneusError
 
 NAME = "transforms.json"
