@@ -323,6 +323,28 @@ class Rig(torch.nn.Module):
                         f.projectors[pid].proj_to_world = e["proj_to_world"][a]
         return s
 
+    def eval_scene(self):
+        """The whole scene with what was learned about poses: training frames' cameras and every
+        projector corrected (held-out frames keep their cameras). The scene itself when off."""
+        if not self.pose_on:
+            return self.scene
+        import copy
+
+        s = copy.deepcopy(self.scene)
+        r = self.refined_poses()
+        for a, i in enumerate(self.frames):
+            s.frames[i].cam_to_world = r["cam_to_world"][a]
+        Ep = self.proj_correction().detach().double().cpu().numpy()
+        for k, pid in enumerate(self.proj_ids):
+            if s.projectors[pid].proj_to_cam is not None:
+                s.projectors[pid].proj_to_cam = s.projectors[pid].proj_to_cam @ Ep[k]
+            else:
+                for f in s.frames:
+                    fp = f.projectors.get(pid)
+                    if fp is not None and fp.proj_to_world is not None:
+                        fp.proj_to_world = fp.proj_to_world @ Ep[k]
+        return s
+
     def write_json(self, out: Path) -> None:
         """``rig.json`` in the run folder: what was learned (corrected poses, sizes of the
         corrections), for the user to feed back into the calibration."""

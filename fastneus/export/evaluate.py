@@ -130,9 +130,10 @@ def render_frames(trainer, frames: list[int], chunk: int = 8192) -> dict[int, di
     """
     scene, cfg = trainer.scene, trainer.cfg
     refr = getattr(trainer.cfg, "refraction", True)
-    bank = RayBank(scene, frames, trainer.device, refraction=refr)
-    proj = build_projection(scene, frames, trainer.device, refraction=refr)
     rig = getattr(trainer, "rig", None)
+    posed = rig.eval_scene() if rig is not None else scene  # learned pose corrections, if any
+    bank = RayBank(posed, frames, trainer.device, refraction=refr)
+    proj = build_projection(posed, frames, trainer.device, refraction=refr)
     if getattr(trainer, "rig", None) is not None:  # learned light model (blur...); poses are per training frame
         proj = trainer.rig.light_model(proj)
     i_r, i_b = (x.detach() for x in trainer.illumination())
