@@ -131,3 +131,37 @@ def test_training_in_water_model_on_and_off(tmp_path, backend):
     assert not off.rig.medium_on and off.proj.port is None and off.bank.port is None
     off.fit()
     assert off.skipped == 0
+
+
+def test_activeneus_refraction_keys_round_trip(tmp_path):
+    """Thin ports go to / come from the format's camera_refraction / projector_refraction."""
+    import copy
+
+    from fastneus.data.scene import FlatPort
+    from fastneus.formats.activeneus import read_activeneus, write_activeneus
+
+    s = _water_scene(tmp_path, views=1, size=(16, 16))
+    with pytest.raises(FastneusError, match="thin ports"):
+        write_activeneus(s, tmp_path / "an0")  # 1 cm of glass has no form there
+    t = copy.deepcopy(s)
+    tilt = np.array([0.1, -0.05, 1.0]) / np.linalg.norm([0.1, -0.05, 1.0])
+    t.cameras["cam0"].port = FlatPort(normal=tilt, distance=0.04, thickness=0.0, n_water=1.34)
+    for k, p in enumerate(t.projectors.values()):
+        p.port = FlatPort(normal=np.array([0, 0, 1.0]), distance=0.02 + 0.01 * k, n_water=1.33)
+    write_activeneus(t, tmp_path / "an")
+    d = np.load(tmp_path / "an" / "cameras_sphere.npz", allow_pickle=True)["camera_refraction"].item()
+    assert d["normal"] == pytest.approx([0.1, -0.05]) and d["mu"] == pytest.approx(1.34)
+    back = read_activeneus(tmp_path / "an")
+    cp = back.cameras["cam0"].port
+    assert np.allclose(cp.normal, tilt) and cp.distance == pytest.approx(0.04) and cp.n_water == pytest.approx(1.34)
+    assert [p.port.distance for p in back.projectors.values()] == pytest.approx([0.02, 0.03, 0.04, 0.05])
+    # the two descriptions refract a ray the same way
+    from fastneus.kernels.project import port_row
+
+    d0 = torch.tensor([[0.2, -0.1, 1.0]], dtype=torch.float64)
+    d0 = d0 / d0.norm()
+    a = refract_rays(d0, torch.tensor(t.cameras["cam0"].port.row(), dtype=torch.float64))
+    b = refract_rays(d0, torch.tensor(port_row(cp.normal, cp.distance, 0.0, 1.0, cp.n_glass, cp.n_water),
+                                      dtype=torch.float64))
+    torch.testing.assert_close(a[0], b[0])
+    torch.testing.assert_close(a[1], b[1])
