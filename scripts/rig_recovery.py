@@ -157,7 +157,7 @@ def part_water(args, out: Path) -> list[dict]:
         tr, m = train(scene, args.device, args.budget, out / "runs" / f"water-{len(rows)}", keys + args.extra)
         row = {"part": "water", "run": name, **m}
         if tr.rig.medium_on:
-            bd, bb, binf = (x.detach().cpu().numpy().round(3).tolist() for x in tr.rig.medium_params())
+            bd, bb, binf = ([round(float(v), 3) for v in x.detach().double().cpu()] for x in tr.rig.medium_params())
             row.update(beta_d=bd, beta_b=bb, b_inf=binf, beta_d_true=true["beta_d"], b_inf_true=true["b_inf"])
         rows.append(row)
     ref = rows[0]["chamfer_sym_mm"]
