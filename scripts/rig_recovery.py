@@ -53,13 +53,20 @@ import torch
 from benchutil import git_rev, machine, md_table, write_json
 
 PARTS = ("pose", "blur", "laser", "water")
+args_points = 100_000  # --points
 args_steps = 0  # --steps: a fixed step count instead of the time budget (deterministic CPU checks)
 GEOM = ["chamfer_sym_mm", "chamfer_gt2rec_mm", "fscore", "psnr_pattern", "psnr_texture"]
 
 
 def train(scene, device: str, budget: float, out: Path, extra: list[str]) -> tuple[object, dict]:
+    from functools import partial
+
+    import fastneus.export.evaluate as ev
     from fastneus.config import load_config
     from fastneus.pipeline import train_scene
+
+    if not isinstance(ev.geometry_metrics, partial):  # --points: Chamfer sample count (finish_run's metrics)
+        ev.geometry_metrics = partial(ev.geometry_metrics, n_points=args_points)
 
     preset = "fewview" if device.startswith("cuda") else "cpu-quick"
     length = [f"steps={args_steps}"] if args_steps else [f"time_budget={budget}"]
@@ -198,6 +205,7 @@ def main() -> None:
     ap.add_argument("--parts", default=",".join(PARTS), help=f"comma list of {', '.join(PARTS)}")
     ap.add_argument("--budget", type=float, default=15.0, help="training seconds per run")
     ap.add_argument("--steps", type=int, default=0, help="train this many steps instead of --budget seconds")
+    ap.add_argument("--points", type=int, default=100_000, help="surface points per mesh for Chamfer")
     ap.add_argument("--size", type=int, default=320, help="image size (square)")
     ap.add_argument("--proj-size", default="512x384", help="projector WxH")
     ap.add_argument("--views", type=int, default=12)
@@ -208,8 +216,8 @@ def main() -> None:
     ap.add_argument("--blur-sigma", type=float, default=1.0, help="projector defocus (projector pixels)")
     ap.add_argument("extra", nargs="*", help="key=value applied to every run")
     args = ap.parse_args()
-    global args_steps
-    args_steps = args.steps
+    global args_steps, args_points
+    args_steps, args_points = args.steps, args.points
     args.proj_size = [int(v) for v in args.proj_size.lower().split("x")]
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -219,25 +227,34 @@ def main() -> None:
         raise SystemExit(f"--parts: unknown {bad}; known: {', '.join(PARTS)}")
     t0 = time.perf_counter()
     rows: list[dict] = []
+    done: list[str] = []
     for p in parts:
         tp = time.perf_counter()
-        rows += globals()[f"part_{p}"](args, out)
+        try:
+            rows += globals()[f"part_{p}"](args, out)
+        except Exception as e:  # noqa: BLE001 - keep the other parts' results
+            rows.append({"part": p, "run": f"FAILED: {type(e).__name__}: {e}"})
+            print(f"[{p}] failed: {type(e).__name__}: {e}", flush=True)
+        done.append(p)
         print(f"[{p}] {time.perf_counter() - tp:.0f} s", flush=True)
+        report(args, out, done, rows, time.perf_counter() - t0)  # after every part: a killed run keeps its tables
+    print((out / "rig-recovery.md").read_text())
+
+
+def report(args, out: Path, parts: list[str], rows: list[dict], seconds: float) -> None:
     head = (f"`python scripts/rig_recovery.py --device {args.device} --parts {','.join(parts)} "
             f"{'--steps ' + str(args.steps) if args.steps else '--budget ' + format(args.budget, 'g')} "
             f"--size {args.size} --views {args.views} --shape {args.shape}` on {machine(args.device)}, "
-            f"git {git_rev()}, {time.perf_counter() - t0:.0f} s in all. Chamfer in mm.\n")
+            f"git {git_rev()}, {seconds:.0f} s in all. Chamfer in mm.\n")
     md = [head]
     fmt = dict(vars(args), pose_m_mm=args.pose_m * 1000)
     for p in parts:
         sub = [r for r in rows if r["part"] == p]
         md.append(f"\n**{TITLES[p].format(**fmt)}**\n\n" + md_table(sub, TABLES[p]))
-    text = "".join(md)
-    print(text)
-    (out / "rig-recovery.md").write_text(text)
+    (out / "rig-recovery.md").write_text("".join(md))
     write_json(out / "rig-recovery.json", {"args": {k: v for k, v in vars(args).items()}, "rows": rows,
-                                           "machine": machine(args.device), "git": git_rev()})
-
+                                           "machine": machine(args.device), "git": git_rev(),
+                                           "seconds": round(seconds, 1)})
 
 if __name__ == "__main__":
     main()
