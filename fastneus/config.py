@@ -191,6 +191,11 @@ def _coerce(name: str, value: Any, default: Any, source: str) -> Any:
                 raise ValueError("expected an integer")
             return value
         if isinstance(default, float):
+            if isinstance(value, str):  # YAML 1.1 reads "3e-3" (no dot) as a string
+                try:
+                    value = float(value)
+                except ValueError:
+                    pass
             if isinstance(value, bool) or not isinstance(value, (int, float)):
                 raise ValueError("expected a number")
             return float(value)

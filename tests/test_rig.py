@@ -268,3 +268,15 @@ def test_synth_projector_blur_changes_only_the_lit_pixels(tmp_path):
     assert np.abs(ia - ib).max() > 10 and np.array_equal(a.gt_clean(0), b.gt_clean(0))
     with pytest.raises(FastneusError, match="blur"):
         synthesize(tmp_path / "c", projector_blur=-1, **kw)
+
+
+def test_config_keys_validate_and_accept_exponent_floats():
+    from fastneus.errors import FastneusError
+
+    c = load_config("cpu-quick", ["lr_pose=3e-3", "projector_blur=5", "medium=off", "pose_warmup_frac=0.2"])
+    assert c.lr_pose == 3e-3 and c.projector_blur == 5 and c.medium == "off"
+    for bad, key in (("projector_blur=4", "projector_blur"), ("medium=oil", "medium"),
+                     ("pose_warmup_frac=1.5", "pose_warmup_frac"), ("lr_blur=0", "lr_blur"), ("lr_pose=x", "lr_pose")):
+        with pytest.raises(FastneusError) as e:
+            load_config("cpu-quick", [bad])
+        assert e.value.field == key
