@@ -154,6 +154,8 @@ def test_scene_json_round_trip_and_errors(tmp_path):
         (lambda d: d["projectors"]["L"]["planes"][0].__setitem__("width", -1), "projectors.L.planes[0].width"),
         (lambda d: d["projectors"]["L"]["planes"][0].__setitem__("fan_deg", 270), "projectors.L.planes[0].fan_deg"),
         (lambda d: d["projectors"]["L"].__setitem__("kind", "beam"), "projectors.L.kind"),
+        (lambda d: d["projectors"]["L"].__setitem__("port", {"normal": [0, 0, 1], "distance": 0.02}),
+         "projectors.L.port"),
         (lambda d: d["frames"][0]["projectors"]["L"].__setitem__("pattern", "q0"), "frames[0].projectors.L.pattern"),
     ]:
         dd = json.loads(json.dumps(d))

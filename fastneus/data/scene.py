@@ -356,6 +356,9 @@ class Scene:
             if kind not in ("pattern", "laser"):
                 raise _err(f"unknown projector kind {kind!r}; use pattern or laser", file, f"{p}.kind")
             if kind == "laser":
+                if pr.get("port") is not None:
+                    raise _err("a laser projector behind a flat port is not modelled (its light sheets bend at the "
+                               "port)", file, f"{p}.port")
                 projectors[pid] = Projector(
                     id=pid, K=np.eye(3), width=1, height=1,
                     proj_to_cam=None if p2c is None else check_pose(p2c, file, f"{p}.proj_to_cam"),
