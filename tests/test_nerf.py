@@ -154,3 +154,21 @@ def test_convert_cli_to_nerf(tmp_path, capsys):
     assert main(["convert", str(tmp_path / "src"), "--to", "nerf", "--out", str(tmp_path / "n")]) == 0
     assert main(["convert", str(tmp_path / "n"), "--to", "fastneus", "--out", str(tmp_path / "f")]) == 0
     _same_scene(Scene.load(tmp_path / "src"), Scene.load(tmp_path / "f"))
+
+
+def test_round_trip_keeps_underwater_ports(tmp_path):
+    from fastneus.synth import synthesize
+
+    s = synthesize(tmp_path / "w", shape="sphere", views=2, size=(16, 16), seed=0, device="cpu", progress=False,
+                   contact_sheet=False, proj_size=(32, 24), medium="water")
+    write_nerf(s, tmp_path / "n")
+    d = json.loads((tmp_path / "n" / "transforms.json").read_text())
+    assert d["port"]["thickness"] == pytest.approx(0.01) and "port" in d["projectors"]["proj0"]
+    back = read_nerf(tmp_path / "n")
+    assert back.cameras["cam0"].port.distance == pytest.approx(0.03)
+    assert back.projectors["proj2"].port.n_water == pytest.approx(1.333)
+    d["port"]["normal"] = [0, 0, -1]
+    (tmp_path / "n" / "transforms.json").write_text(json.dumps(d))
+    with pytest.raises(FastneusError) as e:
+        read_nerf(tmp_path / "n")
+    assert e.value.field == "port.normal"

@@ -33,7 +33,9 @@ Projector extension (fastneus; other tools ignore unknown keys)::
     "frames": [{"file_path": ..., "transform_matrix": ...,
                 "projectors": {"proj0": "patterns/gray_03.png"}}]   # optional per-frame pattern
 
-and optionally ``"bounds": {"center": [x, y, z], "radius": r}`` (the region of interest, in
+a ``"port"`` (underwater housing, the same object as in scene.json: normal, distance,
+thickness, n_air, n_glass, n_water; device frame) may sit at the top level or in a frame
+(the camera's) and in a projector block; and optionally ``"bounds": {"center": [x, y, z], "radius": r}`` (the region of interest, in
 the poses' units; default: the point the cameras look at, radius half the nearest camera
 distance). Units are taken as metres (``"units"`` may say otherwise; it is only a label).
 """
@@ -48,7 +50,7 @@ from typing import Any
 
 import numpy as np
 
-from fastneus.data.scene import FORMAT, VERSION, Scene, image_size
+from fastneus.data.scene import FORMAT, VERSION, Scene, image_size, parse_port, port_to_dict
 from fastneus.errors import FastneusError
 
 NAME = "transforms.json"
@@ -194,11 +196,15 @@ def read_nerf(path: str | os.PathLike) -> Scene:
             raise FastneusError("missing", file=file, field=f"{fld}.transform_matrix")
         img = _image_path(root, f["file_path"], file, f"{fld}.file_path")
         K, w, h, dist = _intrinsics(f, shared, file, fld, size_from=root / img)
-        key = (w, h, *np.round(K.reshape(-1), 9), *np.round(dist, 12))
+        port = f.get("port", shared.get("port"))
+        if port is not None:  # validated (and reported with its field) like a scene.json port
+            port = port_to_dict(parse_port(port, file, f"{fld}.port" if "port" in f else "port"))
+        key = (w, h, *np.round(K.reshape(-1), 9), *np.round(dist, 12), json.dumps(port, sort_keys=True))
         if key not in cam_key:
             cid = f"cam{len(cam_key)}"
             cam_key[key] = cid
-            cameras[cid] = {"K": K.tolist(), "width": w, "height": h, "dist": dist.tolist()}
+            cameras[cid] = {"K": K.tolist(), "width": w, "height": h, "dist": dist.tolist(),
+                            **({"port": port} if port is not None else {})}
         c2w = _pose(f["transform_matrix"], file, f"{fld}.transform_matrix") @ GL_TO_CV
         c2ws.append(c2w)
         fr: dict[str, Any] = {"image": img, "camera": cam_key[key], "cam_to_world": c2w.tolist(), "view": i,
@@ -236,7 +242,8 @@ def read_nerf(path: str | os.PathLike) -> Scene:
         p2c = _pose(pr["proj_to_cam"], file, f"{fld}.proj_to_cam") if has_rig else None
         p2w = _pose(pr["transform_matrix"], file, f"{fld}.transform_matrix") @ GL_TO_CV if has_world else None
         projectors[pid] = {"K": K.tolist(), "width": w, "height": h,
-                           "proj_to_cam": None if p2c is None else p2c.tolist()}
+                           "proj_to_cam": None if p2c is None else p2c.tolist(),
+                           **({"port": pr["port"]} if pr.get("port") is not None else {})}
         default = pattern(pr.get("pattern"), f"{fld}.pattern")
         for i, f in enumerate(frames_in):
             fp = f.get("projectors", {}) or {}
@@ -303,6 +310,8 @@ def write_nerf(scene: Scene, out: str | os.PathLike, copy_files: bool = True) ->
     if one_cam:
         c = next(iter(scene.cameras.values()))
         d.update(intr(c.K, c.width, c.height, c.dist))
+        if c.port is not None:
+            d["port"] = port_to_dict(c.port)
     pat_files = {q.id: put(q.file, "patterns", q.id) for q in scene.patterns.values()}
     proj_block: dict[str, Any] = {}
     for pid, pj in scene.projectors.items():
@@ -310,6 +319,8 @@ def write_nerf(scene: Scene, out: str | os.PathLike, copy_files: bool = True) ->
             raise FastneusError("laser-plane projectors cannot be written to transforms.json; keep the fastneus "
                                 "format", field=f"projectors.{pid}")
         e = intr(pj.K, pj.width, pj.height)
+        if pj.port is not None:
+            e["port"] = port_to_dict(pj.port)
         if pj.proj_to_cam is not None:
             e["proj_to_cam"] = pj.proj_to_cam.tolist()
         else:
@@ -327,6 +338,8 @@ def write_nerf(scene: Scene, out: str | os.PathLike, copy_files: bool = True) ->
         if not one_cam:
             c = scene.cameras[f.camera]
             fe.update(intr(c.K, c.width, c.height, c.dist))
+            if c.port is not None:
+                fe["port"] = port_to_dict(c.port)
         if f.mask is not None:
             fe["mask_path"] = put(f.mask, "masks", f"{i:03d}")
         fe["projectors"] = {pid: (pat_files[fp.pattern] if fp.pattern is not None else None)
