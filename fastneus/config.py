@@ -109,6 +109,20 @@ class Config:
     illum_warmup_frac: float = 0.15    # i_r, i_b frozen for this fraction of the run (illum_init=scene)
     illum_init: str = "scene"          # scene (values from scene.json) | ones (i_r = i_b = 1)
 
+    # --- real rigs (fastneus/rig.py, docs/REAL-RIGS.md); every part off by default ---
+    pose_refine: bool = False          # learn an SE(3) correction per viewpoint camera and per projector
+    pose_anchor: bool = True           # the first training viewpoint's camera stays fixed (world frame)
+    lr_pose: float = 1e-3              # on the corrections (radians, normalised units)
+    pose_warmup_frac: float = 0.1      # corrections frozen until the geometry has formed
+    projector_blur: int = 0            # learned n x n separable blur of each projector's pattern (0 = off; odd n <= 7)
+    lr_blur: float = 5e-3              # on the x / y kernel profiles (identity init, each normalised to sum 1)
+    blur_warmup_frac: float = 0.1      # kernels frozen for this fraction of the run
+    refraction: bool = True            # use the scene's flat ports (underwater housings) for rays and projectors
+    medium: str = "auto"               # learned water attenuation + back-scatter: auto (on when the scene has a
+                                       # port) | on | off
+    lr_medium: float = 1e-2            # on log attenuation / back-scatter coefficients and the veiling light
+    medium_far: float = 20.0           # range (world units) of rays that hit nothing, for their back-scatter
+
     # --- export ---
     mesh_resolution: int = 256
     render_frames: list[int] = field(default_factory=lambda: [0])
@@ -124,10 +138,12 @@ _CHOICES = {
     "masks": ("auto", "on", "off"),
     "bg_prior": ("auto", "on", "off"),
     "init_geometry": ("auto", "decode", "sphere"),
+    "medium": ("auto", "on", "off"),
 }
 # fractions of the run: each must lie in [0, 1]
 _FRACTIONS = ("occ_warmup_frac", "c2f_frac", "inv_s_floor_frac", "warmup_frac", "color_warmup_frac",
-              "cos_anneal_frac", "illum_warmup_frac", "bg_start_frac")
+              "cos_anneal_frac", "illum_warmup_frac", "bg_start_frac", "pose_warmup_frac",
+              "blur_warmup_frac")
 # keys of earlier versions (schedules in steps): converted to fractions of the run when a saved
 # config is read back (a run folder from an older fastneus must still open)
 _LEGACY_STEPS = {"occ_warmup_steps": "occ_warmup_frac", "warmup_steps": "warmup_frac",
@@ -136,7 +152,8 @@ _LEGACY_STEPS = {"occ_warmup_steps": "occ_warmup_frac", "warmup_steps": "warmup_
 _POSITIVE = {"steps", "target_samples", "init_rays", "min_rays", "max_rays", "march_step",
              "max_samples_per_ray", "occ_resolution", "occ_update_every", "levels", "features",
              "log2_table", "base_res", "finest_res", "sdf_hidden", "geo_features", "color_hidden",
-             "lr", "adam_eps", "mesh_resolution", "log_every", "save_every", "init_geometry_steps"}
+             "lr", "adam_eps", "mesh_resolution", "log_every", "save_every", "init_geometry_steps", "lr_pose",
+             "lr_blur", "lr_medium", "medium_far"}
 
 
 def preset_names() -> list[str]:
@@ -182,6 +199,11 @@ def _coerce(name: str, value: Any, default: Any, source: str) -> Any:
                 raise ValueError("expected an integer")
             return value
         if isinstance(default, float):
+            if isinstance(value, str):  # YAML 1.1 reads "3e-3" (no dot) as a string
+                try:
+                    value = float(value)
+                except ValueError:
+                    pass
             if isinstance(value, bool) or not isinstance(value, (int, float)):
                 raise ValueError("expected a number")
             return float(value)
@@ -226,6 +248,9 @@ def validate(cfg: Config, source: str = "config") -> None:
         if not 0.0 <= getattr(cfg, k) <= 1.0:
             raise FastneusError(f"a fraction of the run must be in [0, 1], got {getattr(cfg, k)!r}",
                                 file=source, field=k)
+    if cfg.projector_blur not in (0, 1, 3, 5, 7):
+        raise FastneusError(f"must be 0 (off) or an odd kernel size 1..7, got {cfg.projector_blur}", file=source,
+                            field="projector_blur")
     if not (0 < cfg.decay_to <= 1):
         raise FastneusError("must be in (0, 1]", file=source, field="decay_to")
 

@@ -66,6 +66,7 @@ class ShotBank:
                  brightness_cdf: bool = False, background: float | None = None, bg_tolerance: float = 2.0 / 255):
         self.frames = list(frames)
         self.device = torch.device(device)
+        self.port = None  # rays in air only (make_bank sends ported cameras to RayBank)
         self.groups = group_views(scene, self.frames)
         V = len(self.groups)
         kmax = max(len(g) for g in self.groups)
@@ -164,9 +165,11 @@ class ShotBank:
         return out
 
 
-def make_bank(scene, frames: list[int], device, cfg, **kw):
+def make_bank(scene, frames: list[int], device, cfg, refraction: bool = True, **kw):
     """The trainer's pixel store: a :class:`ShotBank` when a viewpoint has several shots (and
-    ``cfg.group_shots``), else a :class:`RayBank` (one ray per frame pixel)."""
-    if cfg.group_shots and is_multishot(scene, frames):
+    ``cfg.group_shots``), else a :class:`RayBank` (one ray per frame pixel). Cameras behind a
+    flat port (``refraction``) take the RayBank, which casts refracted rays."""
+    ported = refraction and any(scene.frame_camera(i).port is not None for i in frames)
+    if cfg.group_shots and not ported and is_multishot(scene, frames):
         return ShotBank(scene, frames, device, shots=cfg.shots_per_ray, **kw)
-    return RayBank(scene, frames, device, **kw)
+    return RayBank(scene, frames, device, refraction=refraction, **kw)

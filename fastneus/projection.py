@@ -117,6 +117,32 @@ def pixel_rays(K, cam_to_world, uv: torch.Tensor, S=None) -> tuple[torch.Tensor,
     return o.expand(uv.shape[0], 3).clone(), d
 
 
+def refract_rays(d: torch.Tensor, port_row) -> tuple[torch.Tensor, torch.Tensor]:
+    """Rays from a device centre through its flat port into the water (device frame).
+
+    Args:
+        d: [N, 3] unit directions in air (device frame).
+        port_row: [8] (unit normal n, d0, glass thickness, n_air/n_glass, n_air/n_water, flag),
+            ``fastneus.kernels.project.port_row``.
+    Returns:
+        origins [N, 3]: where each ray leaves the glass into the water (device frame, world units);
+        dirs [N, 3]: unit directions in the water. Snell at both faces:
+        ``t = eta (d - (n.d) n) + sqrt(1 - eta^2 |d - (n.d) n|^2) n``.
+    """
+    pr = _as(port_row, d)
+    n, d0, tg, kg, kw = pr[0:3], pr[3], pr[4], pr[5], pr[6]
+
+    def refract(v, eta):
+        tang = v - (v @ n)[:, None] * n
+        return eta * tang + torch.sqrt((1 - eta * eta * (tang * tang).sum(-1)).clamp_min(0))[:, None] * n
+
+    a = d * (d0 / (d @ n).clamp_min(1e-9))[:, None]
+    g = refract(d, kg)
+    b = a + g * (tg / (g @ n).clamp_min(1e-9))[:, None]
+    w = refract(g, kw / kg)
+    return b, w / w.norm(dim=-1, keepdim=True)
+
+
 def normalised_world_to_proj(world_to_proj, S) -> np.ndarray:
     """[3, 4] float64 map from normalised points to projector camera coordinates (W @ S)."""
     return (np.asarray(world_to_proj, dtype=np.float64) @ np.asarray(S, dtype=np.float64))[:3]

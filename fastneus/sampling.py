@@ -34,16 +34,29 @@ class Projection:
         W: [F, P, 3, 4] normalised point -> projector camera coordinates.
         pattern: [F, P] int32 index into ``store`` (-1 = off).
         store: all distinct patterns, packed once.
+        blur: [P, n*n] per-projector pattern blur taps (fastneus.rig), None = plain sampling.
+        laser_on: [F, P] int32, 1 where projector k is a laser-plane projector lit in frame f
+            (None: the scene has no laser projectors).
+        planes: [P, L, 12] packed light planes (``fastneus.kernels.project.pack_planes``).
+        port: [P, 8] flat ports of the projectors (flag column 0 = in air), None = none has one.
+        sigma: [3] attenuation of the projected light in the medium (fastneus.rig), None = none.
     """
 
     K: torch.Tensor
     W: torch.Tensor
     pattern: torch.Tensor
     store: PatternStore
+    blur: torch.Tensor | None = None
+    laser_on: torch.Tensor | None = None
+    planes: torch.Tensor | None = None
+    port: torch.Tensor | None = None
+    sigma: torch.Tensor | None = None
 
 
-def build_projection(scene, frames: list[int], device) -> Projection:
-    """Collect every projector of ``frames`` (in scene order) into kernel-ready tensors."""
+def build_projection(scene, frames: list[int], device, refraction: bool = True) -> Projection:
+    """Collect every projector of ``frames`` (in scene order) into kernel-ready tensors.
+
+    ``refraction``: keep the projectors' flat ports (underwater housings); False ignores them."""
     proj_ids = list(scene.projectors.keys())
     S = np.asarray(scene.normalisation(), dtype=np.float64)
     pat_ids: list[str] = []
@@ -51,12 +64,18 @@ def build_projection(scene, frames: list[int], device) -> Projection:
     K = np.zeros((F, P, 3, 3))
     W = np.zeros((F, P, 3, 4))
     pat = -np.ones((F, P), dtype=np.int32)
+    lasers = [pid for pid in proj_ids if scene.projectors[pid].kind == "laser"]
+    laser_on = np.zeros((F, P), dtype=np.int32)
     for a, i in enumerate(frames):
         frame = scene.frames[i]
         for k, pid in enumerate(proj_ids):
             K[a, k] = np.eye(3)
             W[a, k, :, :3] = np.eye(3)
             fp = frame.projectors.get(pid)
+            if fp is not None and pid in lasers and fp.on:
+                W[a, k] = (np.asarray(scene.world_to_proj(i, pid), dtype=np.float64) @ S)[:3]
+                laser_on[a, k] = 1
+                continue
             if fp is None or fp.pattern is None:
                 continue
             K[a, k] = scene.projectors[pid].K
@@ -67,7 +86,17 @@ def build_projection(scene, frames: list[int], device) -> Projection:
     store = PatternStore([scene.pattern_image(p) for p in pat_ids], device) if pat_ids else \
         PatternStore([np.zeros((1, 1, 3), np.uint8)], device)
     t = lambda a, dt=torch.float32: torch.as_tensor(a, dtype=dt, device=device).contiguous()  # noqa: E731
-    return Projection(t(K), t(W), t(pat, torch.int32), store)
+    proj = Projection(t(K), t(W), t(pat, torch.int32), store)
+    if lasers:
+        from fastneus.kernels.project import pack_planes
+
+        proj.laser_on = t(laser_on, torch.int32)
+        proj.planes = pack_planes([scene.projectors[p].planes for p in proj_ids], device)
+    if refraction and any(scene.projectors[p].port is not None for p in proj_ids):
+        rows = [scene.projectors[p].port.row() if scene.projectors[p].port is not None else [0.0] * 8
+                for p in proj_ids]
+        proj.port = t(np.asarray(rows, dtype=np.float64))
+    return proj
 
 
 class RayBank:
@@ -81,10 +110,12 @@ class RayBank:
         brightness_cdf: keep a brightness-proportional pixel distribution for ``bright_fraction``.
         background: when given, flag pixels whose every channel is within ``bg_tolerance`` of this
             value in [0, 1] (``self.bg``, [sum HW] bool; ``self.bg_fraction`` their share).
+        refraction: cameras with a flat port (underwater housing) cast refracted rays that start
+            on the port's outer face; False treats every camera as a pinhole in one medium.
     """
 
     def __init__(self, scene, frames: list[int], device, load_masks: bool = False, brightness_cdf: bool = False,
-                 background: float | None = None, bg_tolerance: float = 2.0 / 255):
+                 background: float | None = None, bg_tolerance: float = 2.0 / 255, refraction: bool = True):
         self.frames = list(frames)
         self.device = torch.device(device)
         sizes, kinv, rot, org, chunks, masks = [], [], [], [], [], []
@@ -112,6 +143,11 @@ class RayBank:
         self.rot = torch.tensor(np.stack(rot), **f32)                        # [F, 3, 3]
         self.origin = torch.tensor(np.stack(org), **f32)                     # [F, 3]
         self.n_pixels = int((wh[:, 0] * wh[:, 1]).sum())
+        ports = [scene.frame_camera(i).port for i in self.frames]
+        self.port = None                                                     # [F, 8] or None
+        if refraction and any(p is not None for p in ports):
+            self.port = torch.tensor([p.row() if p is not None else [0.0] * 8 for p in ports], **f32)
+            self.radius = float(scene.bounds.radius)
         self.bg, self.bg_fraction = None, 0.0
         if background is not None:
             diff = (self.rgb.to(torch.int16) - int(round(255 * background))).abs().amax(dim=1)
@@ -159,9 +195,27 @@ class RayBank:
         """
         pix = torch.stack([u, v, torch.ones_like(u)], -1)
         d_cam = torch.einsum("bij,bj->bi", self.kinv[fidx], pix)
+        if self.port is not None:  # underwater: refract at the flat port, start in the water
+            return self._refracted(fidx, d_cam / d_cam.norm(dim=-1, keepdim=True))
         d = torch.einsum("bij,bj->bi", self.rot[fidx], d_cam)
         d = d / d.norm(dim=-1, keepdim=True)
         return self.origin[fidx].contiguous(), d.contiguous()
+
+    def _refracted(self, fidx: torch.Tensor, d_cam: torch.Tensor):
+        from fastneus.projection import refract_rays
+
+        o = self.origin[fidx].clone()
+        d = torch.einsum("bij,bj->bi", self.rot[fidx], d_cam)
+        for f in torch.unique(fidx).tolist():
+            row = self.port[f]
+            if float(row[7]) == 0.0:
+                continue
+            sel = fidx == f
+            b, w = refract_rays(d_cam[sel], row)
+            R = self.rot[f]
+            o[sel] = o[sel] + (b @ R.T) / self.radius
+            d[sel] = w @ R.T
+        return o.contiguous(), (d / d.norm(dim=-1, keepdim=True)).contiguous()
 
     def sample(self, n: int, generator: torch.Generator | None = None, bright_fraction: float = 0.0):
         """``n`` random (frame, pixel) pairs: uniform over all pixels of all frames, except a

@@ -23,12 +23,12 @@ import numpy as np
 import torch
 import trimesh
 
-from .data.scene import (Bounds, Camera, Frame, FrameProjector, Illumination, Pattern, Projector, Scene,
-                         look_at)
+from .data.scene import (Bounds, Camera, FlatPort, Frame, FrameProjector, Illumination, Pattern, Projector,
+                         Scene, look_at)
 from .errors import FastneusError
 from .patterns import KINDS as PATTERN_KINDS
 from .patterns import make_pattern, parse_size, write_png
-from .projection import Z_MIN, pixel_rays, project_points, sample_pattern
+from .projection import Z_MIN, pixel_rays, project_points, refract_rays, sample_pattern
 from .shapes import SHAPES, load_mesh, make_shape, normalise_mesh
 
 ALBEDOS = ("uniform", "procedural", "checker", "vertex")
@@ -83,6 +83,65 @@ def orbit_poses(n: int, distance: float, seed: int = 0, elevation_deg=(10.0, 65.
         eye = distance * np.array([math.cos(el) * math.cos(az), math.cos(el) * math.sin(az), math.sin(el)])
         out.append(look_at(eye, np.zeros(3), up=(0.0, 0.0, 1.0)))
     return out
+
+
+WATER_PORT = dict(normal=np.array([0.0, 0.0, 1.0]), distance=0.03, thickness=0.01, n_air=1.0, n_glass=1.5,
+                  n_water=1.333)
+# coastal-water-like: red fades first; per RGB channel, 1 / m; far = range of rays that hit nothing
+WATER = {"beta_d": [0.30, 0.10, 0.06], "beta_b": [0.25, 0.12, 0.08], "b_inf": [0.02, 0.12, 0.18], "far": 20.0}
+
+
+class _Water:
+    """Attenuation and back-scatter along the camera rays of one view (see ``synthesize``)."""
+
+    def __init__(self, t_hit: torch.Tensor, hidx: torch.Tensor, n_pix: int, device):
+        self.r = t_hit[:, None]  # the rays start on the port's outer face: all of t is in the water
+        self.bd, self.bb, self.binf = (torch.tensor(WATER[k], device=device) for k in ("beta_d", "beta_b", "b_inf"))
+        self.n_pix = n_pix
+
+    def seen(self, c: torch.Tensor) -> torch.Tensor:
+        return c * torch.exp(-self.bd * self.r) + self.binf * (1 - torch.exp(-self.bb * self.r))
+
+    def background(self) -> torch.Tensor:
+        far = WATER["far"]
+        return (self.binf * (1 - torch.exp(-self.bb * far))).expand(self.n_pix, 3)
+
+
+def _port_exit(X: torch.Tensor, V: torch.Tensor, port_row: torch.Tensor) -> torch.Tensor:
+    """[N, 3] point (device frame) where the light toward X leaves the port's outer face."""
+    n, d0, tg, kg, kw = port_row[0:3], port_row[3], port_row[4], port_row[5], port_row[6]
+    h = X @ n
+    r = X - h[:, None] * n
+    e = r / r.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+    s = (V * e).sum(-1)
+    sw = kw * s
+    cw = torch.sqrt(1 - sw * sw)
+    hw = (h - d0 - tg).clamp_min(0)
+    wdir = cw[:, None] * n + sw[:, None] * e
+    return X - (hw / cw)[:, None] * wdir
+
+
+def blur_kernel(sigma: float, n: int = 5) -> np.ndarray:
+    """[n, n] Gaussian of ``sigma`` pixels truncated to n x n taps, normalised to sum 1."""
+    h = (n - 1) / 2
+    x = np.arange(n) - h
+    g = np.exp(-0.5 * (x / sigma) ** 2)
+    k = np.outer(g, g)
+    return k / k.sum()
+
+
+def _sample_blurred(pattern: torch.Tensor, px: torch.Tensor, valid: torch.Tensor, taps) -> torch.Tensor:
+    """Pattern light through a blur: sum_ab taps[a, b] * sample(px + (b - h, a - h)); taps None = sharp."""
+    if taps is None:
+        return sample_pattern(pattern, px, valid)
+    n = taps.shape[0]
+    h = (n - 1) / 2
+    q = torch.zeros(px.shape[0], 3, dtype=px.dtype, device=px.device)
+    for a in range(n):
+        for b in range(n):
+            off = torch.tensor([b - h, a - h], dtype=px.dtype, device=px.device)
+            q = q + float(taps[a, b]) * sample_pattern(pattern, px + off, valid)
+    return q
 
 
 # --------------------------------------------------------------------------- albedo
@@ -180,7 +239,8 @@ def synthesize(out, shape: str | None = None, mesh=None, views: int = 20, size=(
                i_b: float = 0.1, proj_size=(1024, 768), proj_fov_deg: float = 60.0, baselines=None,
                cam_distance: float = 4.0, focal: float | None = None, poses=None, normalise: bool = True,
                pattern_opts: dict | None = None, light_dir=(0.35, -0.4, 0.85), contact_sheet: bool = True,
-               progress: bool = True, threads: int | None = 1) -> Scene:
+               progress: bool = True, threads: int | None = 1, projector_blur: float = 0.0,
+               laser_planes: bool = False, medium: str = "air") -> Scene:
     """Render a synthetic structured-light scene into ``out`` and return it (loaded back).
 
     Args:
@@ -209,6 +269,21 @@ def synthesize(out, shape: str | None = None, mesh=None, views: int = 20, size=(
         light_dir: world direction toward the light of the Lambertian shading.
         contact_sheet: write ``contact_sheet.png`` (first frames, for a person to look at).
         progress: show a rich progress bar and print a summary.
+        projector_blur: defocus of every projector, the sigma (projector pixels) of a Gaussian
+            truncated to 5 x 5 taps and normalised (:func:`blur_kernel`); the pattern is
+            correlated with it (zero outside the pattern) before sampling, exactly the model of
+            ``projector_blur=5`` in training. 0 = sharp.
+        laser_planes: the projectors are laser line projectors defined by light planes
+            (``Projector.planes``, the exact model): the planes of the ``crosslaser`` pattern's
+            lines (same seed per projector, :func:`fastneus.lasers.crosslaser_planes`), sheet
+            thickness = the line width at ``cam_distance``. Needs ``pattern="crosslaser"``.
+        medium: ``air`` or ``water``: cameras and projectors sit behind flat ports
+            (:data:`WATER_PORT`: 3 cm to the glass, 1 cm of glass, n = 1 / 1.5 / 1.333), rays
+            refract there, and the water attenuates and back-scatters (:data:`WATER`): the
+            surface colour c (pattern light included, each projector's light attenuated by
+            exp(-beta_d |X_k|) on its way) is seen as ``c exp(-beta_d r) + b_inf (1 - exp(-beta_b r))``,
+            r = the ray's length in the water (``far`` for rays that hit nothing). The same
+            geometry, seed and poses in air give the reference.
         threads: torch CPU threads while rendering (restored afterwards; None = leave as is).
             Default 1: the per-view tensors are ~1e5 elements, where intra-op threading
             gains little and costs up to 8x when the cores are shared (measured).
@@ -227,7 +302,7 @@ def synthesize(out, shape: str | None = None, mesh=None, views: int = 20, size=(
 
 def _synthesize(out, shape, mesh, views, size, pattern, illum, albedo, noise, seed, device, ambient, i_r, i_b,
                 proj_size, proj_fov_deg, baselines, cam_distance, focal, poses, normalise, pattern_opts,
-                light_dir, contact_sheet, progress) -> Scene:
+                light_dir, contact_sheet, progress, projector_blur, laser_planes, medium) -> Scene:
     from .kernels.raycast import raycast_mesh
 
     t_start = time.perf_counter()
@@ -242,8 +317,21 @@ def _synthesize(out, shape, mesh, views, size, pattern, illum, albedo, noise, se
         raise FastneusError("need at least one view", field="--views")
     if noise < 0:
         raise FastneusError("noise sigma must be >= 0", field="--noise")
+    if projector_blur < 0:
+        raise FastneusError("projector blur sigma must be >= 0", field="--projector-blur")
+    taps = blur_kernel(projector_blur) if projector_blur > 0 else None
+    if medium not in ("air", "water"):
+        raise FastneusError(f"unknown medium {medium!r}; use air or water", field="--medium")
+    wet = medium == "water"
+    if wet and laser_planes:
+        raise FastneusError("laser planes under water are not modelled (their sheets bend at the port)",
+                            field="--medium")
+    port = FlatPort(**WATER_PORT) if wet else None
     amb = float(ILLUMS[illum] if ambient is None else ambient)
     dev = torch.device(device)
+    port_row_t = torch.tensor(port.row(), dtype=torch.float32, device=dev) if wet else None
+    if wet:
+        from .kernels.project import port_dir_torch
 
     # ---- mesh
     if shape is not None:
@@ -273,12 +361,27 @@ def _synthesize(out, shape, mesh, views, size, pattern, illum, albedo, noise, se
     projectors = {f"proj{k}": Projector(id=f"proj{k}", K=Kp, width=PW, height=PH,
                                         proj_to_cam=rig_proj_to_cam(b, cam_distance))
                   for k, b in enumerate(baselines)}
+    for p in projectors.values():
+        p.port = port
+    if laser_planes:
+        from .lasers import crosslaser_planes
+
+        if pattern != "crosslaser" or projector_blur > 0:
+            raise FastneusError("laser planes replace the crosslaser pattern (and have no blur)", field="--laser-planes")
+        lo = dict(pattern_opts or {})
+        for k, p in enumerate(projectors.values()):
+            p.planes = crosslaser_planes(Kp, PW, PH, cam_distance, seed=seed + k, count=lo.get("count", 8),
+                                         line_width=lo.get("line_width", 3))
+            p.K, p.width, p.height = np.eye(3), 1, 1
     pids = list(projectors)
     opts = dict(pattern_opts or {})
     # per shot j of a view: {projector id -> pattern id}; images by pattern id
     pat_images: dict[str, np.ndarray] = {}
     shots: list[dict[str, str]] = []
-    if isinstance(pattern, np.ndarray):
+    if laser_planes:
+        kind = "laserplanes"
+        shots.append({p: None for p in pids})
+    elif isinstance(pattern, np.ndarray):
         if pattern.dtype != np.uint8 or pattern.shape != (PH, PW, 3):
             raise FastneusError(f"a custom pattern must be uint8 [{PH}, {PW}, 3]", field="pattern")
         pat_images["custom"] = pattern
@@ -334,6 +437,10 @@ def _synthesize(out, shape, mesh, views, size, pattern, illum, albedo, noise, se
     try:
         for v, c2w in enumerate(poses):
             o, d = pixel_rays(K, c2w, uv)  # world space (S = identity)
+            if wet:  # refract at the camera's port: rays start on its outer face, in the water
+                R = torch.tensor(c2w[:3, :3], dtype=torch.float32, device=dev)
+                b, w = refract_rays(d @ R, port_row_t)
+                o, d = o + b @ R.T, w @ R.T
             t, face, n = raycast_mesh(V, F, o, d, 1e6)
             hit = face >= 0
             hidx = hit.nonzero().squeeze(1)
@@ -341,7 +448,7 @@ def _synthesize(out, shape, mesh, views, size, pattern, illum, albedo, noise, se
             P = o[hidx] + th[:, None] * dh
             zc = torch.tensor(c2w[:3, 2], dtype=torch.float32, device=dev)
             depth = torch.zeros(H * W, dtype=torch.float32, device=dev)
-            depth[hidx] = th * (dh @ zc)
+            depth[hidx] = (P - torch.tensor(c2w[:3, 3], dtype=torch.float32, device=dev)) @ zc  # z-depth
             D = amb * alb(P, face[hidx], V, F) * (0.3 + 0.7 * (nh @ light).clamp_min(0))[:, None]
 
             # projector terms: Q per shot and projector, V per projector (shadow rays where lit)
@@ -351,13 +458,29 @@ def _synthesize(out, shape, mesh, views, size, pattern, illum, albedo, noise, se
                 p2w = c2w @ projectors[p].proj_to_cam
                 w2p = np.linalg.inv(p2w)
                 px, z = project_points(P, Kp, w2p)
+                if wet:  # the pixel whose light reaches P through the port (the air-side direction)
+                    Xp = P @ torch.tensor(w2p[:3, :3].T, dtype=P.dtype, device=dev) + \
+                        torch.tensor(w2p[:3, 3], dtype=P.dtype, device=dev)
+                    Vd = port_dir_torch(Xp, port_row_t)
+                    px, z = project_points(Vd, Kp, np.eye(4))
+                    att_k = torch.exp(-torch.tensor(WATER["beta_d"], device=dev) * Xp.norm(dim=-1, keepdim=True))
                 front = z > Z_MIN
                 need = torch.zeros(P.shape[0], dtype=torch.bool, device=dev)
                 for j, shot in enumerate(shots):
-                    q = sample_pattern(pat_t[shot[p]], px, front)
+                    if laser_planes:
+                        from .lasers import light_at_points
+
+                        q = light_at_points(P, w2p, projectors[p].planes).to(P.dtype)
+                    else:
+                        q = _sample_blurred(pat_t[shot[p]], px, front, taps)
+                    if wet:
+                        q = q * att_k
                     Q[j][k] = q
                     need |= q.amax(dim=1) > 0
                 C = torch.tensor(p2w[:3, 3], dtype=torch.float32, device=dev)
+                if wet:  # shadow rays follow the water segment, toward where the light leaves the port
+                    C = _port_exit(Xp, Vd, port_row_t) @ torch.tensor(p2w[:3, :3].T, dtype=P.dtype, device=dev) + \
+                        torch.tensor(p2w[:3, 3], dtype=P.dtype, device=dev)
                 to_c = C - P
                 dist = to_c.norm(dim=1)
                 dirp = to_c / dist[:, None]
@@ -372,8 +495,11 @@ def _synthesize(out, shape, mesh, views, size, pattern, illum, albedo, noise, se
 
             nv = hidx.numel()
             mask = hit.view(H, W)
+            water = _Water(th, hidx, H * W, dev) if wet else None
             clean = torch.zeros(H * W, 3, dtype=torch.uint8, device=dev)
-            clean[hidx] = _quantise(D + _noise((nv, 3), noise, (seed, 1, v), dev))
+            if wet:
+                clean[:] = _quantise(water.background())
+            clean[hidx] = _quantise((water.seen(D) if wet else D) + _noise((nv, 3), noise, (seed, 1, v), dev))
             normal_img = torch.zeros(H * W, 3, dtype=torch.uint8, device=dev)
             normal_img[hidx] = torch.round((nh + 1) * 0.5 * 255).clamp(0, 255).to(torch.uint8)
             vname = f"{v:03d}"
@@ -392,13 +518,16 @@ def _synthesize(out, shape, mesh, views, size, pattern, illum, albedo, noise, se
                     c = c + (i_r * D + i_b) * qv
                     lit |= qv.amax(dim=1) > 0
                 img = torch.zeros(H * W, 3, dtype=torch.uint8, device=dev)
+                if wet:
+                    img[:] = _quantise(water.background() + _noise((H * W, 3), noise, (seed, 3, fi), dev))
+                    c = water.seen(c)
                 img[hidx] = _quantise(c + _noise((nv, 3), noise, (seed, 2, fi), dev))
                 img_np = img.view(H, W, 3).cpu().numpy()
                 write_png(out / "images" / f"{fi:03d}.png", img_np)
                 stats["lit"].append(float(lit.float().mean()) if nv else 0.0)
                 frames.append(Frame(
                     image=f"images/{fi:03d}.png", camera="cam0", cam_to_world=c2w, view=v,
-                    projectors={p: FrameProjector(pattern=shot[p]) for p in pids}, mask=f"masks/{vname}.png",
+                    projectors={p: FrameProjector(pattern=shot[p], on=True) for p in pids}, mask=f"masks/{vname}.png",
                     gt={"depth": f"depth/{vname}.npy", "normal": f"normals/{vname}.png",
                         "clean": f"clean/{vname}.png"}))
                 if contact_sheet and len(sheet_rows) < 4:
@@ -410,14 +539,17 @@ def _synthesize(out, shape, mesh, views, size, pattern, illum, albedo, noise, se
             prog.stop()
 
     scene = Scene(
-        root=out.resolve(), cameras={"cam0": Camera(id="cam0", K=K, width=W, height=H)},
+        root=out.resolve(), cameras={"cam0": Camera(id="cam0", K=K, width=W, height=H, port=port)},
         projectors=projectors, patterns={q: Pattern(id=q, file=f"patterns/{q}.png") for q in pat_images},
         frames=frames, bounds=Bounds(center=centre.astype(np.float64), radius=1.1 * obj_radius),
         illumination=Illumination(i_r=i_r, i_b=i_b, ambient=amb, known=True), gt_mesh="gt_mesh.ply",
         units="m", name=name,
         meta={"generator": GENERATOR, "source": src, "pattern": kind, "illum": illum, "albedo": albedo,
               "noise": noise, "seed": seed, "light_dir": list(map(float, light_dir)), "cam_distance": cam_distance,
-              "baselines": list(map(float, baselines)), "projector_hfov_deg": proj_fov_deg})
+              "baselines": list(map(float, baselines)), "projector_hfov_deg": proj_fov_deg,
+              **({"projector_blur_sigma_px": float(projector_blur), "projector_blur_kernel": taps.tolist()}
+                 if taps is not None else {}),
+              **({"medium": dict(WATER, kind="water")} if wet else {})})
     if contact_sheet and sheet_rows:
         write_png(out / "contact_sheet.png", _contact_sheet(sheet_rows))
     scene.save(out)
@@ -497,6 +629,12 @@ def register(subparsers) -> None:
     p.add_argument("--baselines", default=None,
                    help="projector x offsets on the rig in metres, comma-separated (default: -0.6,-0.2,0.2,0.6 "
                         "for one-shot patterns, 0.6 for sequences); '0.6' = the paper's one-projector pattern study")
+    p.add_argument("--medium", default="air", choices=("air", "water"),
+                   help="water: cameras and projectors behind flat ports, attenuation and back-scatter")
+    p.add_argument("--laser-planes", action="store_true",
+                   help="projectors are laser line projectors defined by light planes (the crosslaser lines)")
+    p.add_argument("--projector-blur", type=float, default=0.0, metavar="SIGMA",
+                   help="projector defocus: Gaussian sigma in projector pixels, 5x5 taps (default 0 = sharp)")
     p.add_argument("--no-contact-sheet", action="store_true")
     p.add_argument("--threads", type=int, default=1, help="torch CPU threads while rendering (default 1)")
     add_device_arg(p)
@@ -530,5 +668,6 @@ def _run(args) -> int:
     synthesize(args.out, shape=args.shape, mesh=args.mesh, views=args.views, size=size, pattern=args.pattern,
                illum=args.illum, albedo=args.albedo, noise=args.noise, seed=args.seed, device=device,
                ambient=args.ambient, proj_size=psize, contact_sheet=not args.no_contact_sheet,
-               threads=args.threads, baselines=parse_baselines(args.baselines))
+               threads=args.threads, baselines=parse_baselines(args.baselines), projector_blur=args.projector_blur,
+               laser_planes=args.laser_planes, medium=args.medium)
     return 0

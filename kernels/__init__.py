@@ -14,6 +14,8 @@ _OPS = {
     "march_rays": "occupancy",
     "occupancy_alpha": "occupancy",
     "render_pattern": "render",
+    "project_pattern": "project",
+    "laser_light": "project",
     "raycast_mesh": "raycast",
 }
 

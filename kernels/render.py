@@ -224,7 +224,7 @@ def _render_fwd(
     ray_frame: wp.array(dtype=wp.int32), K: wp.array2d(dtype=wp.mat33), W: wp.array2d(dtype=mat34),
     proj_pattern: wp.array2d(dtype=wp.int32), pat: wp.array(dtype=wp.uint8), meta: wp.array(dtype=wp.vec3i),
     inv_s: wp.array(dtype=float), cos_anneal: float, i_r: wp.array(dtype=float), i_b: wp.array(dtype=float),
-    write_weights: int,
+    write_weights: int, q_ext: wp.array(dtype=wp.vec3), use_qext: int,
     out_color: wp.array(dtype=wp.vec3), out_opacity: wp.array(dtype=float), out_depth: wp.array(dtype=float),
     out_texture: wp.array(dtype=wp.vec3), out_weights: wp.array(dtype=float), out_trans: wp.array(dtype=float),
 ):
@@ -249,7 +249,11 @@ def _render_fwd(
         alpha = wp.clamp(_raw_alpha(sdf[i], ic, a1 - a0, s), 0.0, 0.9999)
         w = T * alpha
         D = col[i]
-        q = _pattern_sum(pos[i], f, P, K, W, proj_pattern, pat, meta)
+        q = wp.vec3(0.0)
+        if use_qext != 0:
+            q = q_ext[i]
+        else:
+            q = _pattern_sum(pos[i], f, P, K, W, proj_pattern, pat, meta)
         c = D + wp.cw_mul(D * ir + wp.vec3(ib), q)
         C += w * c
         tex += w * D
@@ -274,7 +278,7 @@ def _render_bwd(
     proj_pattern: wp.array2d(dtype=wp.int32), pat: wp.array(dtype=wp.uint8), meta: wp.array(dtype=wp.vec3i),
     inv_s: wp.array(dtype=float), cos_anneal: float, i_r: wp.array(dtype=float), i_b: wp.array(dtype=float),
     # the forward's per-sample transmittance and the upstream gradients
-    trans: wp.array(dtype=float),
+    trans: wp.array(dtype=float), q_ext: wp.array(dtype=wp.vec3), use_qext: int, need_qext: int,
     g_color: wp.array(dtype=wp.vec3), g_opacity: wp.array(dtype=float), g_depth: wp.array(dtype=float),
     g_texture: wp.array(dtype=wp.vec3),
     # which input gradients to write (0/1)
@@ -283,7 +287,7 @@ def _render_bwd(
     # input gradients (zero-initialised; dummies of size 1 where not needed)
     d_sdf: wp.array(dtype=float), d_grad: wp.array(dtype=wp.vec3), d_col: wp.array(dtype=wp.vec3),
     d_pos: wp.array(dtype=wp.vec3), d_invs: wp.array(dtype=float), d_ir: wp.array(dtype=float),
-    d_ib: wp.array(dtype=float), d_W: wp.array(dtype=float),
+    d_ib: wp.array(dtype=float), d_W: wp.array(dtype=float), d_qext: wp.array(dtype=wp.vec3),
 ):
     r = wp.tid()
     start = offsets[r]
@@ -333,7 +337,12 @@ def _render_bwd(
         p = pos[i]
         gcw = w * gc  # dL/dc_i
         q = wp.vec3(0.0)
-        if need_proj > 0:
+        if use_qext != 0:
+            # Q given (project_pattern): its gradient goes back through q_ext, not pos / W here
+            q = q_ext[i]
+            if need_qext != 0:
+                d_qext[i] = wp.cw_mul(gcw, D * ir + wp.vec3(ib))
+        elif need_proj > 0:
             # one pass over the projectors gives Q and, from the same texels, dL/dpos and dL/dW
             gq = wp.cw_mul(gcw, D * ir + wp.vec3(ib))  # dL/dQ_k, the same for every projector
             gp = wp.vec3(0.0)
@@ -431,7 +440,7 @@ def _param(x, ref: torch.Tensor) -> torch.Tensor:
 
 class _RenderPattern(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, sdf, grad, color, pos, inv_s, i_r, i_b, proj_W,
+    def forward(ctx, sdf, grad, color, pos, inv_s, i_r, i_b, proj_W, q_ext,
                 t0, t1, offsets, counts, dirs, ray_frame, proj_K, proj_pattern, pat_buf, pat_meta,
                 cos_anneal, return_weights):
         ref = sdf
@@ -451,23 +460,26 @@ class _RenderPattern(torch.autograd.Function):
             _wp(pat_meta, wp.vec3i), _wp(inv_s), float(cos_anneal), _wp(i_r),
             _wp(i_b),
         ]
-        _warp.launch(_render_fwd, R, common + [int(return_weights)], ref,
+        use_q = q_ext is not None
+        q_arr = q_ext if use_q else torch.zeros((1, 3), dtype=torch.float32, device=ref.device)
+        _warp.launch(_render_fwd, R, common + [int(return_weights), _wp(q_arr, wp.vec3), int(use_q)], ref,
                      outputs=[_wp(out_color, wp.vec3), _wp(out_opacity),
                               _wp(out_depth), _wp(out_texture, wp.vec3), _wp(weights),
                               _wp(trans)])
-        ctx.save_for_backward(sdf, grad, color, pos, inv_s, i_r, i_b, proj_W, t0, t1, offsets, counts, dirs,
+        ctx.save_for_backward(sdf, grad, color, pos, inv_s, i_r, i_b, proj_W, q_arr, t0, t1, offsets, counts, dirs,
                               ray_frame, proj_K, proj_pattern, pat_buf, pat_meta, trans)
+        ctx.use_q = use_q
         ctx.cos_anneal = float(cos_anneal)
         ctx.mark_non_differentiable(weights)
         return out_color, out_opacity, out_depth, out_texture, weights
 
     @staticmethod
     def backward(ctx, g_color, g_opacity, g_depth, g_texture, _g_weights):
-        (sdf, grad, color, pos, inv_s, i_r, i_b, proj_W, t0, t1, offsets, counts, dirs, ray_frame, proj_K,
+        (sdf, grad, color, pos, inv_s, i_r, i_b, proj_W, q_arr, t0, t1, offsets, counts, dirs, ray_frame, proj_K,
          proj_pattern, pat_buf, pat_meta, trans) = ctx.saved_tensors
-        needs = ctx.needs_input_grad[:8]
+        needs = ctx.needs_input_grad[:9]
         if not any(needs):
-            return (None,) * 20
+            return (None,) * 21
         dev = sdf.device
 
         def buf(i, shape):
@@ -478,6 +490,7 @@ class _RenderPattern(torch.autograd.Function):
         d_sdf, d_grad, d_col, d_pos = buf(0, (S,)), buf(1, (S, 3)), buf(2, (S, 3)), buf(3, (S, 3))
         d_invs, d_ir, d_ib = buf(4, (1,)), buf(5, (1,)), buf(6, (1,))
         d_W = torch.zeros(proj_W.shape if needs[7] else (1,), dtype=torch.float32, device=dev)
+        d_q = torch.zeros(q_arr.shape if needs[8] else (1, 3), dtype=torch.float32, device=dev)
         inputs = [
             _wp(sdf), _wp(grad, wp.vec3), _wp(color, wp.vec3), _wp(pos, wp.vec3),
             _wp(t0), _wp(t1), _wp(offsets), _wp(counts),
@@ -485,7 +498,7 @@ class _RenderPattern(torch.autograd.Function):
             _wp(proj_W, mat34), _wp(proj_pattern), _wp(pat_buf),
             _wp(pat_meta, wp.vec3i), _wp(inv_s), ctx.cos_anneal, _wp(i_r),
             _wp(i_b),
-            _wp(trans),
+            _wp(trans), _wp(q_arr, wp.vec3), int(ctx.use_q), int(needs[8]),
             _wp(_f32(g_color), wp.vec3), _wp(_f32(g_opacity)), _wp(_f32(g_depth)),
             _wp(_f32(g_texture), wp.vec3),
             int(needs[0]), int(needs[1]), int(needs[2]), int(needs[3]), int(needs[4]), int(needs[5]),
@@ -493,9 +506,9 @@ class _RenderPattern(torch.autograd.Function):
         ]
         outputs = [_wp(d_sdf), _wp(d_grad, wp.vec3), _wp(d_col, wp.vec3),
                    _wp(d_pos, wp.vec3), _wp(d_invs), _wp(d_ir), _wp(d_ib),
-                   _wp(d_W.view(-1))]
+                   _wp(d_W.view(-1)), _wp(d_q, wp.vec3)]
         _warp.launch(_render_bwd, offsets.shape[0], inputs, sdf, outputs=outputs)
-        res = [d_sdf, d_grad, d_col, d_pos, d_invs, d_ir, d_ib, d_W]
+        res = [d_sdf, d_grad, d_col, d_pos, d_invs, d_ir, d_ib, d_W, d_q]
         res = [g if n else None for g, n in zip(res, needs)]
         return tuple(res) + (None,) * 12
 
@@ -535,6 +548,7 @@ def render_pattern(
     i_r: torch.Tensor,  # [1] float32
     i_b: torch.Tensor,  # [1] float32
     return_weights: bool = False,
+    q_ext: torch.Tensor | None = None,  # [S, 3] float32: Q(P) computed elsewhere (project_pattern)
 ) -> dict:
     """NeuS rendering with pattern projection (Warp forward, hand-written Warp backward).
 
@@ -554,6 +568,8 @@ def render_pattern(
         inv_s: NeuS sharpness s. cos_anneal: anneal ratio in [0, 1].
         i_r, i_b: reflectance and bias of the projected light (used as given; keep them >= 0).
         return_weights: also return per-sample weights w_i (not differentiable).
+        q_ext: when given, the projected light Q per sample is taken from it (differentiable)
+            instead of being sampled from the patterns here; proj_W then gets no gradient.
 
     Returns:
         dict with color [R, 3], opacity [R], depth [R], texture [R, 3] (float32) and, if
@@ -565,7 +581,7 @@ def render_pattern(
         meta = torch.zeros((1, 3), dtype=torch.int32, device=sdf.device)
     out = _RenderPattern.apply(
         _f32(sdf), _f32(grad), _f32(color), _f32(pos), _f32(_param(inv_s, sdf)), _f32(_param(i_r, sdf)),
-        _f32(_param(i_b, sdf)), _f32(proj_W),
+        _f32(_param(i_b, sdf)), _f32(proj_W), None if q_ext is None else _f32(q_ext),
         _f32(t0), _f32(t1), _i32(offsets), _i32(counts), _f32(dirs), _i32(ray_frame), _f32(proj_K),
         _i32(proj_pattern), patterns.buffer.contiguous(), _i32(meta), float(cos_anneal), bool(return_weights))
     res = dict(color=out[0], opacity=out[1], depth=out[2], texture=out[3])
@@ -643,6 +659,7 @@ def render_pattern_torch(
     i_r: torch.Tensor,  # [1]
     i_b: torch.Tensor,  # [1]
     return_weights: bool = False,
+    q_ext: torch.Tensor | None = None,  # [S, 3]
 ) -> dict:
     """Pure-torch twin of :func:`render_pattern` (same maths; differentiable by autograd).
 
@@ -672,7 +689,10 @@ def render_pattern_torch(
     start = offsets.long()[ri]  # first sample of each sample's ray
     T = torch.exp(excl - excl[start]).to(dtype)  # per-ray exclusive transmittance
     w = T * alpha
-    q = _pattern_sum_torch(pos, ray_frame.long()[ri], proj_K, proj_W, proj_pattern, patterns)
+    if q_ext is not None:
+        q = q_ext.to(dtype)
+    else:
+        q = _pattern_sum_torch(pos, ray_frame.long()[ri], proj_K, proj_W, proj_pattern, patterns)
     c = color + (i_r * color + i_b) * q
     mid = (t0 + t1) * 0.5
 

@@ -77,7 +77,7 @@ def _npz_with(src: Path, dst: Path, **entries) -> Path:
 
 
 # --------------------------------------------------------------------------- scene files
-@pytest.mark.parametrize("key", ["illumination_params", "cam_mat_0"])
+@pytest.mark.parametrize("key", ["illumination_params", "cam_mat_0", "camera_refraction", "projector_refraction"])
 def test_pickled_payload_in_npz_does_not_run(an_scene, tmp_path, capsys, key):
     marker = tmp_path / "pwned"
     npz = _npz_with(an_scene, tmp_path / "evil", **{key: np.array(Payload(marker), dtype=object)})
@@ -98,6 +98,23 @@ def test_payload_inside_the_illumination_dict_does_not_run(an_scene, tmp_path):
     with pytest.raises(FastneusError, match="refused to unpickle.*builtins.exec"):
         load_scene(npz.parent)
     assert not marker.exists()
+
+
+def test_payload_inside_a_port_dict_does_not_run_and_a_genuine_port_loads(an_scene, tmp_path):
+    from fastneus.formats.detect import load_scene
+
+    marker = tmp_path / "pwned"
+    port = {"normal": [0.0, Payload(marker)], "depth": 0.1, "mu": 1.33}
+    npz = _npz_with(an_scene, tmp_path / "evil", camera_refraction=np.array(port, dtype=object))
+    _live(marker, lambda: np.load(npz, allow_pickle=True)["camera_refraction"])
+    with pytest.raises(FastneusError, match="camera_refraction"):
+        load_scene(npz.parent)
+    assert not marker.exists()
+    # the official layout: a pickled dict of numbers and a list of two numbers
+    ok = {"normal": [np.float64(0.0), 0.1], "depth": np.float32(0.05), "mu": 1.33}
+    npz = _npz_with(an_scene, tmp_path / "good", camera_refraction=np.array(ok, dtype=object))
+    cam = next(iter(load_scene(npz.parent).cameras.values()))
+    assert cam.port is not None and cam.port.n_water == pytest.approx(1.33)
 
 
 def test_payload_in_unused_entry_is_never_unpickled(an_scene, tmp_path):

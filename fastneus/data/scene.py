@@ -32,6 +32,26 @@ POSE_TOL = 1e-4  # tolerance of the rigidity check R^T R = I
 
 # --------------------------------------------------------------------------- dataclasses
 @dataclass
+class FlatPort:
+    """A flat port in front of a device in water (its own frame, world units): the glass's
+    inner face is ``normal . X = distance`` (normal unit, pointing into the water), then
+    ``thickness`` of glass, then water; refractive indices of air (inside), glass, water."""
+
+    normal: np.ndarray  # [3] unit
+    distance: float
+    thickness: float = 0.0
+    n_air: float = 1.0
+    n_glass: float = 1.5
+    n_water: float = 1.333
+
+    def row(self) -> list[float]:
+        """The kernel's 8-float row (``fastneus.kernels.project.port_row``)."""
+        from fastneus.kernels.project import port_row
+
+        return port_row(self.normal, self.distance, self.thickness, self.n_air, self.n_glass, self.n_water)
+
+
+@dataclass
 class Camera:
     """Pinhole camera intrinsics. ``K`` maps camera coords to continuous pixel coords."""
 
@@ -40,17 +60,45 @@ class Camera:
     width: int
     height: int
     dist: np.ndarray = field(default_factory=lambda: np.zeros(5))  # [5] k1 k2 p1 p2 k3
+    port: FlatPort | None = None  # underwater housing
+
+
+@dataclass
+class LaserPlane:
+    """One light plane of a laser line projector, in the projector's frame (world units).
+
+    Points X with ``normal . X = offset`` are on the plane's centre; the light falls off as a
+    Gaussian of the distance to it with full width at half maximum ``width``, and exists only
+    inside the fan: the angle between X's in-plane direction and ``axis`` (projected onto the
+    plane) is at most ``fan_deg / 2``.
+    """
+
+    normal: np.ndarray  # [3] unit
+    offset: float
+    colour: np.ndarray  # [3] RGB in [0, 1]
+    width: float        # FWHM of the sheet thickness (world units)
+    fan_deg: float      # full fan angle (degrees)
+    axis: np.ndarray = field(default_factory=lambda: np.array([0.0, 0.0, 1.0]))  # [3] fan centre direction
 
 
 @dataclass
 class Projector:
-    """Projector intrinsics; ``proj_to_cam`` [4,4] rigs it to the frame's camera, None = free."""
+    """Projector intrinsics; ``proj_to_cam`` [4,4] rigs it to the frame's camera, None = free.
+
+    A laser-plane projector (``planes`` given, ``kind == "laser"``) has no image: K is the
+    identity and the size 1 x 1 in memory, and its light is evaluated from the planes."""
 
     id: str
     K: np.ndarray  # [3, 3] float64
     width: int
     height: int
     proj_to_cam: np.ndarray | None = None  # [4, 4] float64 or None (pose given per frame)
+    planes: list[LaserPlane] | None = None
+    port: FlatPort | None = None  # underwater housing
+
+    @property
+    def kind(self) -> str:
+        return "laser" if self.planes is not None else "pattern"
 
 
 @dataclass
@@ -63,10 +111,12 @@ class Pattern:
 
 @dataclass
 class FrameProjector:
-    """What one projector does in one frame: the pattern shown (None = off), free pose."""
+    """What one projector does in one frame: the pattern shown (None = off), free pose;
+    a laser projector has no pattern and is lit when ``on``."""
 
     pattern: str | None = None
     proj_to_world: np.ndarray | None = None  # [4, 4] float64, only for free projectors
+    on: bool = True  # laser projectors only
 
 
 @dataclass
@@ -345,7 +395,8 @@ class Scene:
                 id=cid, K=check_intrinsics(_req(c, "K", file, p), file, f"{p}.K"),
                 width=_int(_req(c, "width", file, p), file, f"{p}.width"),
                 height=_int(_req(c, "height", file, p), file, f"{p}.height"),
-                dist=np.zeros(5) if dist is None else _matrix(dist, (5,), file, f"{p}.dist"))
+                dist=np.zeros(5) if dist is None else _matrix(dist, (5,), file, f"{p}.dist"),
+                port=parse_port(c.get("port"), file, f"{p}.port"))
         if not cameras:
             raise _err("no cameras", file, "cameras")
 
@@ -354,11 +405,24 @@ class Scene:
             p = f"projectors.{pid}"
             pr = _dict(pr, file, p)
             p2c = pr.get("proj_to_cam")
+            kind = pr.get("kind", "pattern")
+            if kind not in ("pattern", "laser"):
+                raise _err(f"unknown projector kind {kind!r}; use pattern or laser", file, f"{p}.kind")
+            if kind == "laser":
+                if pr.get("port") is not None:
+                    raise _err("a laser projector behind a flat port is not modelled (its light sheets bend at the "
+                               "port)", file, f"{p}.port")
+                projectors[pid] = Projector(
+                    id=pid, K=np.eye(3), width=1, height=1,
+                    proj_to_cam=None if p2c is None else check_pose(p2c, file, f"{p}.proj_to_cam"),
+                    planes=parse_planes(_req(pr, "planes", file, p), file, f"{p}.planes"))
+                continue
             projectors[pid] = Projector(
                 id=pid, K=check_intrinsics(_req(pr, "K", file, p), file, f"{p}.K"),
                 width=_int(_req(pr, "width", file, p), file, f"{p}.width"),
                 height=_int(_req(pr, "height", file, p), file, f"{p}.height"),
-                proj_to_cam=None if p2c is None else check_pose(p2c, file, f"{p}.proj_to_cam"))
+                proj_to_cam=None if p2c is None else check_pose(p2c, file, f"{p}.proj_to_cam"),
+                port=parse_port(pr.get("port"), file, f"{p}.port"))
 
         patterns: dict[str, Pattern] = {}
         pattern_sizes: dict[str, tuple[int, int]] = {}
@@ -401,6 +465,12 @@ class Scene:
                     raise _err(f"unknown projector id {pid!r}; known: {sorted(projectors)}", file, pp)
                 fp = _dict(fp, file, pp)
                 pat = fp.get("pattern")
+                on = fp.get("on", True)
+                if not isinstance(on, bool):
+                    raise _err("expected true or false", file, f"{pp}.on")
+                if projectors[pid].kind == "laser" and pat is not None:
+                    raise _err(f"projector {pid!r} is a laser (planes); it shows no pattern, use on: true/false",
+                               file, f"{pp}.pattern")
                 if pat is not None:
                     if not isinstance(pat, str) or pat not in patterns:
                         raise _err(f"unknown pattern id {pat!r}; known: {sorted(patterns)}", file, f"{pp}.pattern")
@@ -418,7 +488,7 @@ class Scene:
                 elif p2w is not None:
                     raise _err(f"projector {pid!r} is rigged to the camera (proj_to_cam); "
                                "a per-frame proj_to_world would contradict it", file, f"{pp}.proj_to_world")
-                fps[pid] = FrameProjector(pattern=pat, proj_to_world=p2w)
+                fps[pid] = FrameProjector(pattern=pat, proj_to_world=p2w, on=on)
             gt = {}
             for k, v in _dict(f.get("gt", {}), file, f"{p}.gt").items():
                 if k not in GT_KEYS:
@@ -473,7 +543,8 @@ class Scene:
             fd: dict[str, Any] = {"image": rp(f.image), "camera": f.camera, "cam_to_world": _list(f.cam_to_world),
                                   "view": int(f.view), "projectors": {}}
             for pid, fp in f.projectors.items():
-                e: dict[str, Any] = {"pattern": fp.pattern}
+                e: dict[str, Any] = {"on": bool(fp.on)} if self.projectors[pid].kind == "laser" else \
+                    {"pattern": fp.pattern}
                 if fp.proj_to_world is not None:
                     e["proj_to_world"] = _list(fp.proj_to_world)
                 fd["projectors"][pid] = e
@@ -486,10 +557,15 @@ class Scene:
         return {
             "format": FORMAT, "version": VERSION, "units": self.units, "name": self.name,
             "bounds": {"center": _list(self.bounds.center), "radius": float(self.bounds.radius)},
-            "cameras": {c.id: {"K": _list(c.K), "width": c.width, "height": c.height, "dist": _list(c.dist)}
+            "cameras": {c.id: {"K": _list(c.K), "width": c.width, "height": c.height, "dist": _list(c.dist),
+                               **({"port": port_to_dict(c.port)} if c.port is not None else {})}
                         for c in self.cameras.values()},
-            "projectors": {p.id: {"K": _list(p.K), "width": p.width, "height": p.height,
-                                  "proj_to_cam": _list(p.proj_to_cam)} for p in self.projectors.values()},
+            "projectors": {p.id: ({"K": _list(p.K), "width": p.width, "height": p.height,
+                                   "proj_to_cam": _list(p.proj_to_cam),
+                                   **({"port": port_to_dict(p.port)} if p.port is not None else {})}
+                                  if p.kind == "pattern" else
+                                  {"kind": "laser", "proj_to_cam": _list(p.proj_to_cam),
+                                   "planes": planes_to_list(p.planes)}) for p in self.projectors.values()},
             "patterns": {q.id: {"file": rp(q.file)} for q in self.patterns.values()},
             "frames": frames,
             "illumination": {"i_r": float(il.i_r), "i_b": float(il.i_b), "ambient": float(il.ambient),
@@ -555,6 +631,11 @@ class Scene:
     def active_projectors(self, i: int) -> list[tuple[str, str]]:
         """(projector id, pattern id) of every projector showing a pattern in frame ``i``."""
         return [(pid, fp.pattern) for pid, fp in self.frames[i].projectors.items() if fp.pattern is not None]
+
+    def active_lasers(self, i: int) -> list[str]:
+        """Ids of the laser-plane projectors lit in frame ``i``."""
+        return [pid for pid, fp in self.frames[i].projectors.items()
+                if self.projectors[pid].kind == "laser" and fp.on]
 
     def normalisation(self) -> np.ndarray:
         """[4, 4] float64 S mapping normalised -> world coordinates."""
@@ -648,6 +729,73 @@ class Scene:
         s = copy.copy(self)
         s.frames = [copy.deepcopy(self.frames[i]) for i in idx]
         return s
+
+
+def parse_planes(value: Any, file, fld: str) -> list[LaserPlane]:
+    """Validate a list of plane objects {normal, offset, colour, width, fan_deg[, axis]}.
+
+    The normal is normalised (it must be non-zero); ``offset`` is in the same units as
+    ``width`` (world units in scene.json)."""
+    if not isinstance(value, list) or not value:
+        raise _err("expected a non-empty list of planes", file, fld)
+    out = []
+    for j, pl in enumerate(value):
+        p = f"{fld}[{j}]"
+        pl = _dict(pl, file, p)
+        n = _matrix(_req(pl, "normal", file, p), (3,), file, f"{p}.normal")
+        if np.linalg.norm(n) < 1e-9:
+            raise _err("normal must be non-zero", file, f"{p}.normal")
+        col = _matrix(pl.get("colour", pl.get("color", [1.0, 1.0, 1.0])), (3,), file, f"{p}.colour")
+        if np.any(col < 0) or np.any(col > 1):
+            raise _err("colour values must be in [0, 1]", file, f"{p}.colour")
+        width = _num(_req(pl, "width", file, p), file, f"{p}.width")
+        if width <= 0:
+            raise _err("must be > 0", file, f"{p}.width")
+        fan = _num(pl.get("fan_deg", 90.0), file, f"{p}.fan_deg")
+        if not 0 < fan <= 180:
+            raise _err("must be in (0, 180] degrees", file, f"{p}.fan_deg")
+        axis = _matrix(pl.get("axis", [0.0, 0.0, 1.0]), (3,), file, f"{p}.axis")
+        nn = n / np.linalg.norm(n)
+        if np.linalg.norm(axis - nn * (axis @ nn)) < 1e-6:
+            raise _err("axis must not be parallel to the normal (it gives the fan's centre direction in the plane)",
+                       file, f"{p}.axis")
+        out.append(LaserPlane(normal=nn, offset=_num(pl.get("offset", 0.0), file, f"{p}.offset"), colour=col,
+                              width=width, fan_deg=fan, axis=axis / np.linalg.norm(axis)))
+    return out
+
+
+def parse_port(value: Any, file, fld: str) -> FlatPort | None:
+    """Validate a flat port {normal, distance, thickness?, n_air?, n_glass?, n_water?} (None = in air)."""
+    if value is None:
+        return None
+    d = _dict(value, file, fld)
+    n = _matrix(_req(d, "normal", file, fld), (3,), file, f"{fld}.normal")
+    if np.linalg.norm(n) < 1e-9:
+        raise _err("normal must be non-zero", file, f"{fld}.normal")
+    n = n / np.linalg.norm(n)
+    if n[2] <= 0.1:
+        raise _err("normal must point forward (z > 0.1 in the device frame: into the water)", file, f"{fld}.normal")
+    dist = _num(_req(d, "distance", file, fld), file, f"{fld}.distance")
+    thick = _num(d.get("thickness", 0.0), file, f"{fld}.thickness")
+    if dist <= 0 or thick < 0:
+        raise _err("distance must be > 0 and thickness >= 0", file, f"{fld}.distance")
+    idx = {k: _num(d.get(k, v), file, f"{fld}.{k}") for k, v in (("n_air", 1.0), ("n_glass", 1.5), ("n_water", 1.333))}
+    for k, v in idx.items():
+        if v < 1.0:
+            raise _err("refractive indices are >= 1", file, f"{fld}.{k}")
+    if idx["n_water"] < idx["n_air"]:
+        raise _err("n_water < n_air: the model needs the denser medium outside", file, f"{fld}.n_water")
+    return FlatPort(normal=n, distance=dist, thickness=thick, **idx)
+
+
+def port_to_dict(p: FlatPort) -> dict:
+    return {"normal": _list(p.normal), "distance": float(p.distance), "thickness": float(p.thickness),
+            "n_air": float(p.n_air), "n_glass": float(p.n_glass), "n_water": float(p.n_water)}
+
+
+def planes_to_list(planes: list[LaserPlane]) -> list[dict]:
+    return [{"normal": _list(p.normal), "offset": float(p.offset), "colour": _list(p.colour), "width": float(p.width),
+             "fan_deg": float(p.fan_deg), "axis": _list(p.axis)} for p in planes]
 
 
 def rigid_inverse(T: np.ndarray) -> np.ndarray:

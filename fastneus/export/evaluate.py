@@ -135,8 +135,13 @@ def render_frames(trainer, frames: list[int], chunk: int = 8192) -> dict[int, di
     e.g. the reference baseline) is used through it; otherwise the fastneus field and grid.
     """
     scene, cfg = trainer.scene, trainer.cfg
-    bank = RayBank(scene, frames, trainer.device)
-    proj = build_projection(scene, frames, trainer.device)
+    refr = getattr(trainer.cfg, "refraction", True)
+    rig = getattr(trainer, "rig", None)
+    posed = rig.eval_scene() if rig is not None else scene  # learned pose corrections, if any
+    bank = RayBank(posed, frames, trainer.device, refraction=refr)
+    proj = build_projection(posed, frames, trainer.device, refraction=refr)
+    if getattr(trainer, "rig", None) is not None:  # learned light model (blur...); poses are per training frame
+        proj = trainer.rig.light_model(proj)
     i_r, i_b = (x.detach() for x in trainer.illumination())
     out = {}
     for a, i in enumerate(frames):
@@ -147,10 +152,15 @@ def render_frames(trainer, frames: list[int], chunk: int = 8192) -> dict[int, di
         else:
             r = render_image(trainer.field, trainer.grid.bits, trainer.grid.resolution, proj, o, d, fidx, cfg,
                              i_r=i_r, i_b=i_b, chunk=chunk)
-        bg = cfg.background * (1 - r["opacity"])[:, None]
+        if rig is not None:  # in water: attenuation + back-scatter (fastneus.rig)
+            with torch.no_grad():
+                color, texture = (rig.composite(r[k], r, cfg.background) for k in ("color", "texture"))
+        else:
+            bg = cfg.background * (1 - r["opacity"])[:, None]
+            color, texture = r["color"] + bg, r["texture"] + bg
         out[i] = {
-            "color": (r["color"] + bg).numpy().reshape(h, w, 3),
-            "texture": (r["texture"] + bg).numpy().reshape(h, w, 3),
+            "color": color.numpy().reshape(h, w, 3),
+            "texture": texture.numpy().reshape(h, w, 3),
             "opacity": r["opacity"].numpy().reshape(h, w),
             "depth": depth_to_z(scene, i, r["depth"].numpy() / np.maximum(r["opacity"].numpy(), 1e-6), h, w),
             "normal": r["normal"].numpy().reshape(h, w, 3),

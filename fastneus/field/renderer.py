@@ -57,21 +57,43 @@ def render_rays(field, bits: torch.Tensor, grid_res: int, proj, origins: torch.T
     color = field.color(pos, grad, d_s, geo)
     pattern_on = cfg.use_pattern if use_pattern is None else use_pattern
     pat = proj.pattern if pattern_on else torch.full_like(proj.pattern, -1)
+    blur, laser_on = getattr(proj, "blur", None), getattr(proj, "laser_on", None)
+    port, sigma = getattr(proj, "port", None), getattr(proj, "sigma", None)
+
+    def light(f: torch.Tensor):
+        """Projected light Q of the real-rig models (fastneus.rig) for frame rows ``f`` [B], or
+        None: computed apart and handed to the render kernel."""
+        if blur is None and laser_on is None and port is None and sigma is None:
+            return None
+        q_ext, b = None, blur
+        if b is not None or port is not None or sigma is not None or bool((pat >= 0).any()):
+            if b is None:
+                from fastneus.kernels.project import identity_blur
+
+                b = identity_blur(pat.shape[1], device=device)
+            q_ext = get_op("project_pattern", cfg.backend)(pos, ray_index, offsets, counts, f, proj.K, proj.W,
+                                                           pat, proj.store, b, port=port, sigma=sigma)
+        if laser_on is not None and pattern_on:
+            ql = get_op("laser_light", cfg.backend)(pos, ray_index, offsets, counts, f, proj.W, laser_on,
+                                                    proj.planes)
+            q_ext = ql if q_ext is None else q_ext + ql
+        return q_ext
+
     shots = fidx[:, None] if fidx.dim() == 1 else fidx
     colors = []
     for k in range(shots.shape[1]):  # one render per shot over the same samples (weights are shared)
-        out = render(sdf, grad, color, pos, t0, t1, ray_index, offsets, counts, dirs, shots[:, k].contiguous(),
+        f = shots[:, k].contiguous()
+        out = render(sdf, grad, color, pos, t0, t1, ray_index, offsets, counts, dirs, f,
                      proj.K, proj.W, pat, proj.store, field.inv_s(), float(cos_anneal), i_r, i_b,
-                     return_weights=with_normals and k == 0)
+                     return_weights=with_normals and k == 0, q_ext=light(f))
         if k == 0:
             res = dict(out)
         colors.append(out["color"])
     if fidx.dim() == 2:
         res["color"] = torch.stack(colors, 1)
-    out = res
     res["grad"], res["curv"], res["n_samples"] = grad, curv, s
     if with_normals:
-        w = out["weights"].detach()
+        w = res["weights"].detach()
         nrm = grad.detach() / grad.detach().norm(dim=-1, keepdim=True).clamp_min(1e-6)
         res["normal"] = torch.zeros(n, 3, device=device).index_add_(0, ri, w[:, None] * nrm)
     return res

@@ -11,7 +11,12 @@ Conventions that differ from fastneus:
 - camera pixels: the format puts integer pixel centres at integer coords, fastneus at
   +0.5, so reading shifts the camera principal point by +0.5 (writing by -0.5);
 - projector pixels: the official code samples patterns with ``grid_sample(align_corners=
-  False)``, i.e. the fastneus convention already, so projector K is copied unchanged.
+  False)``, i.e. the fastneus convention already, so projector K is copied unchanged;
+- flat ports: optional ``camera_refraction`` {normal: [nx, ny], depth, mu} (all cameras) and
+  ``projector_refraction`` (one per projector) describe a thin interface whose plane is
+  n . X = |n|^2 depth with n = (nx, ny, 1) (camera frame, world units) and index ratio
+  mu = n_water / n_air; they become fastneus ports with unit normal n / |n|, distance
+  |n| depth, no glass (and are written back from such ports).
 """
 from __future__ import annotations
 
@@ -25,7 +30,7 @@ import numpy as np
 from fastneus.data.scene import (FORMAT, VERSION, Scene, check_faces_bounds, check_intrinsics, check_pose, image_size,
                                  rigid_inverse)
 from fastneus.errors import FastneusError
-from fastneus.formats.safe_npz import npz_array, open_npz, read_number_dict
+from fastneus.formats.safe_npz import npz_array, open_npz, read_number_dict, read_pickled_value
 
 NPZ = "cameras_sphere.npz"
 IMG_EXT = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
@@ -71,6 +76,40 @@ def _group(mats: list[np.ndarray]) -> list[int]:
 
 def _rel(path: Path, root: Path) -> str:
     return Path(os.path.relpath(path, root)).as_posix()
+
+
+# --------------------------------------------------------------------------- flat ports
+def _port_dict(d: Any, file: Path, fld: str) -> dict:
+    """The format's {normal: [nx, ny], depth, mu} -> a fastneus ``port`` object (see module doc)."""
+    if not isinstance(d, dict) or not {"normal", "depth", "mu"} <= set(d):
+        raise FastneusError("expected {normal: [nx, ny], depth, mu}", file=file, field=fld)
+    try:
+        nxy = np.asarray(d["normal"], dtype=np.float64).reshape(-1)
+        depth, mu = float(d["depth"]), float(d["mu"])
+    except (TypeError, ValueError):
+        raise FastneusError("expected numbers", file=file, field=fld) from None
+    if nxy.shape != (2,) or not np.all(np.isfinite(nxy)) or not np.isfinite(depth) or not np.isfinite(mu):
+        raise FastneusError("expected normal [nx, ny] and finite depth, mu", file=file, field=fld)
+    n = np.array([nxy[0], nxy[1], 1.0])
+    ln = float(np.linalg.norm(n))
+    return {"normal": (n / ln).tolist(), "distance": max(depth * ln, 1e-6),  # the official code uses relu(depth)
+            "thickness": 0.0, "n_air": 1.0, "n_glass": mu, "n_water": mu}
+
+
+def _port_in(npz, key: str, file: Path) -> dict | None:
+    if key not in npz.files:
+        return None
+    # a pickled dict in the official format: decoded by the restricted unpickler (never np.load's)
+    return _port_dict(read_pickled_value(npz, key, file, "expected {normal: [nx, ny], depth, mu}"), file, key)
+
+
+def _port_out(port, where: str) -> dict:
+    """A thin fastneus port -> the format's {normal: [nx, ny], depth, mu}."""
+    if port.thickness != 0 or port.n_air != 1.0:
+        raise FastneusError("the ActiveNeuS format holds thin ports in air (thickness 0, n_air 1) only", field=where)
+    n = np.asarray(port.normal, dtype=np.float64)
+    return {"normal": [float(n[0] / n[2]), float(n[1] / n[2])], "depth": float(port.distance * n[2]),
+            "mu": float(port.n_water)}
 
 
 # --------------------------------------------------------------------------- reading
@@ -263,6 +302,24 @@ def read_activeneus(path: str | os.PathLike) -> Scene:
                                     field=f"illumination_params.{key}")
             illum[name] = ip[key]
 
+    cam_port = _port_in(npz, "camera_refraction", npz_path)
+    if cam_port is not None:
+        for c in cameras.values():
+            c["port"] = cam_port
+    if "projector_refraction" in npz.files:
+        lst = read_pickled_value(npz, "projector_refraction", npz_path,
+                                 "expected a list of {normal: [nx, ny], depth, mu}", vector=True)
+        if not isinstance(lst, (list, tuple)):
+            raise FastneusError("expected a list of {normal: [nx, ny], depth, mu}", file=npz_path,
+                                field="projector_refraction")
+        if len(lst) != P:
+            raise FastneusError(f"{len(lst)} entries for {P} projector(s)", file=npz_path, field="projector_refraction")
+        for k in range(P):
+            pp = _port_dict(lst[k], npz_path, f"projector_refraction[{k}]")
+            for pid, pr in projectors.items():
+                if pid == f"proj{k}" or pid.startswith(f"proj{k}_"):
+                    pr["port"] = pp
+
     data = {"format": FORMAT, "version": VERSION, "units": "m", "name": root.resolve().name,
             "bounds": {"center": S[:3, 3].tolist(), "radius": float(s)},
             "cameras": cameras, "projectors": projectors, "patterns": patterns, "frames": frames,
@@ -293,6 +350,10 @@ def write_activeneus(scene: Scene, out: str | os.PathLike, downscale: int = 1) -
     Raises:
         FastneusError: free (non rig-attached) projectors, or a bad ``downscale``.
     """
+    lasers = [p for p, pj in scene.projectors.items() if pj.kind == "laser"]
+    if lasers:
+        raise FastneusError(f"laser-plane projectors ({', '.join(lasers)}) have no ActiveNeuS form; keep the "
+                            "fastneus format", field=f"projectors.{lasers[0]}")
     import cv2
 
     from fastneus.io import atomic_write, atomic_write_image
@@ -357,6 +418,18 @@ def write_activeneus(scene: Scene, out: str | os.PathLike, downscale: int = 1) -
             atomic_write_image(out / "pattern" / f"{i:03d}_{k:02d}.png", pat)
         arrays[f"proj_mat_{i}"] = PK
         arrays[f"cam_proj_pose_{i}"] = CP
+    ports = {(c.port.row() if c.port is not None else None).__repr__(): c for c in scene.cameras.values()}
+    if any(c.port is not None for c in scene.cameras.values()):
+        if len(ports) != 1:
+            raise FastneusError("the ActiveNeuS format holds one camera port for all cameras", field="cameras.port")
+        arrays["camera_refraction"] = np.array(_port_out(next(iter(ports.values())).port, "cameras.port"),
+                                               dtype=object)
+    if any(scene.projectors[p].port is not None for p in pids):
+        if any(scene.projectors[p].port is None for p in pids):
+            raise FastneusError("the ActiveNeuS format needs a port on every projector or none",
+                                field="projectors.port")
+        arrays["projector_refraction"] = np.array([_port_out(scene.projectors[p].port, f"projectors.{p}.port")
+                                                   for p in pids], dtype=object)
     il = scene.illumination
     arrays["illumination_params"] = np.array({"ambient": float(il.ambient), "diffuse": float(il.i_r),
                                               "emissive": float(il.i_b)}, dtype=object)

@@ -8,7 +8,7 @@ from pathlib import Path
 
 from fastneus.errors import FastneusError
 
-TARGETS = ("fastneus", "activeneus")
+TARGETS = ("fastneus", "activeneus", "nerf")
 
 
 def write_fastneus(scene, out: str | os.PathLike):
@@ -62,9 +62,13 @@ def _convert(args) -> int:
     if Path(args.out).resolve() == Path(scene.root).resolve():
         raise FastneusError("output folder is the input folder; choose another --out", file=args.out, field="--out")
     # written aside and moved in at the end: an unreadable image found half-way leaves --out as it was
-    with staged_dir(args.out, replace=("image", "mask", "pattern", "gt")) as stage:
+    with staged_dir(args.out, replace=("image", "mask", "pattern", "gt", "images", "masks", "patterns")) as stage:
         if args.to == "fastneus":
             write_fastneus(scene, stage)
+        elif args.to == "nerf":
+            from fastneus.formats.nerf import write_nerf
+
+            write_nerf(scene, stage)
         else:
             from fastneus.formats.activeneus import write_activeneus
 
@@ -87,6 +91,10 @@ def _list_images(folder: str, what: str) -> list[Path]:
 
 def _import_calib(args) -> int:
     from fastneus.formats.opencv_calib import make_scene_from_calibration
+    from fastneus.lasers import read_laser_planes
+
+    if not args.patterns and not args.laser_planes:
+        raise FastneusError("give --patterns (a pattern projector) and/or --laser-planes FILE", field="--patterns")
 
     from fastneus.io import check_out_dir
 
@@ -104,8 +112,9 @@ def _import_calib(args) -> int:
         warnings.simplefilter("always")
         scene = make_scene_from_calibration(
             args.calib if len(args.calib) > 1 else args.calib[0], _list_images(args.images, "--images"),
-            _list_images(args.patterns, "--patterns"), args.poses or args.colmap, args.out, units=args.units,
-            proj_size=args.proj_size, colmap_scale=args.colmap_scale, bounds=bounds)
+            _list_images(args.patterns, "--patterns") if args.patterns else [], args.poses or args.colmap, args.out,
+            units=args.units, proj_size=args.proj_size, colmap_scale=args.colmap_scale, bounds=bounds,
+            lasers=read_laser_planes(args.laser_planes, units=args.units) if args.laser_planes else None)
     for w in caught:
         print(f"warning: {w.message}")
     print(f"wrote fastneus scene with {len(scene.frames)} frames -> {Path(args.out) / 'scene.json'}")
@@ -113,9 +122,9 @@ def _import_calib(args) -> int:
 
 
 def register(subparsers) -> None:
-    p = subparsers.add_parser("convert", help="convert a scene between formats (fastneus, ActiveNeuS; reads NeuS too)",
+    p = subparsers.add_parser("convert", help="convert a scene between formats (fastneus, ActiveNeuS, NeRF transforms.json; reads NeuS too)",
                               description="Read a scene of any supported format and write it as TO.")
-    p.add_argument("scene", help="scene folder (fastneus, ActiveNeuS or NeuS)")
+    p.add_argument("scene", help="scene folder (fastneus, ActiveNeuS, NeuS or NeRF transforms.json)")
     p.add_argument("--to", required=True, choices=TARGETS)
     p.add_argument("--out", required=True, help="output folder")
     p.add_argument("--downscale", type=int, default=1, help="activeneus target: shrink images by this factor")
@@ -126,7 +135,9 @@ def register(subparsers) -> None:
                                           "OpenCV stereo, procam-calibration layouts), photos, patterns and poses.")
     p.add_argument("calib", nargs="+", help="calibration YAML/XML (several files are merged)")
     p.add_argument("--images", required=True, help="folder of photos (sorted = frame order)")
-    p.add_argument("--patterns", required=True, help="folder (one pattern per photo, or one for all) or a file")
+    p.add_argument("--patterns", help="folder (one pattern per photo, or one for all) or a file")
+    p.add_argument("--laser-planes", help="laser plane calibration (YAML/JSON, layout in docs/REAL-RIGS.md): laser "
+                                          "line projectors lit in every photo")
     g = p.add_mutually_exclusive_group(required=True)
     g.add_argument("--poses", help="scene.json whose frames give cam_to_world in order")
     g.add_argument("--colmap", help="COLMAP text model folder (cameras.txt, images.txt)")

@@ -1,4 +1,5 @@
-"""Open any supported scene folder: fastneus (scene.json), ActiveNeuS, NeuS/DTU.
+"""Open any supported scene folder: fastneus (scene.json), ActiveNeuS, NeuS/DTU, NeRF
+(transforms.json).
 
 Every verb that takes a scene goes through :func:`load_scene`, so users never need a
 conversion step.
@@ -12,10 +13,13 @@ from fastneus.errors import FastneusError
 
 
 def detect_format(path: str | Path) -> str:
-    """'fastneus', 'activeneus' or 'neus' for a scene folder (or a scene.json path)."""
+    """'fastneus', 'activeneus', 'neus' or 'nerf' for a scene folder (or its scene.json /
+    transforms.json)."""
     p = Path(path)
     if p.is_file() and p.name == "scene.json" or (p / "scene.json").is_file():
         return "fastneus"
+    if p.is_file() and p.name == "transforms.json" or (p / "transforms.json").is_file():
+        return "nerf"
     if not p.exists():
         raise FastneusError("scene not found", file=str(p))
     npz = p / "cameras_sphere.npz"
@@ -28,12 +32,13 @@ def detect_format(path: str | Path) -> str:
         if "world_mat_0" in keys:
             return "neus"
         raise FastneusError("neither ActiveNeuS (cam_mat_0) nor NeuS (world_mat_0) keys found", file=str(npz))
-    raise FastneusError("not a scene folder: expected scene.json (fastneus) or cameras_sphere.npz "
-                        "(ActiveNeuS / NeuS)", file=str(p))
+    raise FastneusError("not a scene folder: expected scene.json (fastneus), cameras_sphere.npz "
+                        "(ActiveNeuS / NeuS) or transforms.json (NeRF / nerfstudio)", file=str(p))
 
 
 _READERS = {"activeneus": ("fastneus.formats.activeneus", "read_activeneus"),
-            "neus": ("fastneus.formats.neus", "read_neus")}
+            "neus": ("fastneus.formats.neus", "read_neus"),
+            "nerf": ("fastneus.formats.nerf", "read_nerf")}
 
 
 def load_scene(path: str | Path):

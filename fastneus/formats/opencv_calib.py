@@ -31,7 +31,8 @@ from typing import Sequence
 
 import numpy as np
 
-from fastneus.data.scene import FORMAT, VERSION, Camera, Projector, Scene, check_pose, image_size, rigid_inverse
+from fastneus.data.scene import (FORMAT, VERSION, Camera, Projector, Scene, check_pose, image_size, planes_to_list,
+                                 rigid_inverse)
 from fastneus.errors import FastneusError
 from fastneus.io import staged_dir
 
@@ -133,7 +134,8 @@ def _parse_wh(v, what: str) -> tuple[int, int] | None:
     return w, h
 
 
-def read_procam_calibration(path, proj_size=None, units: str = "mm", cam_size=None) -> tuple[Camera, Projector]:
+def read_procam_calibration(path, proj_size=None, units: str = "mm", cam_size=None,
+                            require_projector: bool = True) -> tuple[Camera, Projector | None]:
     """Read a projector-camera calibration into a camera and a rig-attached projector.
 
     Args:
@@ -142,6 +144,8 @@ def read_procam_calibration(path, proj_size=None, units: str = "mm", cam_size=No
         proj_size: projector (width, height) or ``"WxH"`` when the file lacks it.
         units: unit of T in the file (``mm``, ``cm`` or ``m``); converted to metres.
         cam_size: camera (width, height) when the file lacks it.
+        require_projector: False accepts a camera-only file (a laser-plane rig) and then
+            returns ``(camera, None)`` when the file has no projector keys.
 
     Returns:
         (camera ``cam0`` with K [3,3] in fastneus pixel convention and dist [5],
@@ -166,7 +170,8 @@ def read_procam_calibration(path, proj_size=None, units: str = "mm", cam_size=No
                             "M1/M2 (OpenCV stereo) or cam_int/proj_int (procam-calibration)", file=file0)
     ck, cd, pk, pd, rks, tk = LAYOUTS[layout]
     rk = next((k for k in rks if k in nodes), rks[0])
-    for key in (ck, cd, pk, pd, rk, tk):
+    camera_only = not require_projector and pk not in nodes
+    for key in (ck, cd) if camera_only else (ck, cd, pk, pd, rk, tk):
         if key not in nodes:
             raise FastneusError(f"missing key ({layout} layout)", file=file0, field=key)
 
@@ -178,6 +183,12 @@ def read_procam_calibration(path, proj_size=None, units: str = "mm", cam_size=No
         K[1, 2] += 0.5
         return K
 
+    if camera_only:
+        cs = _size(nodes, [("cam_width", "cam_height"), ("image_width", "image_height")],
+                   ["cam_size", "image_size", "imageSize"], ["img_shape", "cam_shape"]) or _parse_wh(cam_size, "--cam-size")
+        if cs is None:
+            raise FastneusError("camera image size not in the file; give images", file=file0)
+        return Camera(id="cam0", K=K_of(ck), width=cs[0], height=cs[1], dist=_dist5(nodes, cd)), None
     Kc, Kp = K_of(ck), K_of(pk)
     dc, dp = _dist5(nodes, cd), _dist5(nodes, pd)
     R = _array(nodes, rk, [(3, 3)])
@@ -236,7 +247,7 @@ def _poses_from_scene_json(path: Path, n: int) -> tuple[list[np.ndarray], dict |
 
 
 def make_scene_from_calibration(calib, images: Sequence, patterns: Sequence, poses, out, units: str = "mm",
-                                proj_size=None, colmap_scale: float = 1.0, bounds=None) -> Scene:
+                                proj_size=None, colmap_scale: float = 1.0, bounds=None, lasers=None) -> Scene:
     """Build and save a fastneus scene from a procam calibration, photos, patterns and poses.
 
     Images and patterns are copied into ``out/image`` and ``out/pattern`` unchanged;
@@ -258,6 +269,9 @@ def make_scene_from_calibration(calib, images: Sequence, patterns: Sequence, pos
         bounds: ``(center [3], radius)`` in metres; default from the poses file's bounds,
             COLMAP's points3D.txt (median, 90th percentile distance x 1.2), or the
             point the cameras look at.
+        lasers: laser-plane projectors (``fastneus.lasers.read_laser_planes``), lit in every
+            frame; with lasers the calibration may hold the camera only and ``patterns``
+            may be empty (a laser-only rig).
 
     Returns:
         The saved, validated scene.
@@ -267,7 +281,10 @@ def make_scene_from_calibration(calib, images: Sequence, patterns: Sequence, pos
         raise FastneusError("no images given", field="--images")
     n = len(images)
     pats = [Path(p) for p in (patterns if isinstance(patterns, (list, tuple)) else [patterns])]
-    if len(pats) not in (1, n):
+    lasers = dict(lasers or {})
+    if not pats and not lasers:
+        raise FastneusError("no patterns given (and no laser planes)", field="--patterns")
+    if pats and len(pats) not in (1, n):
         raise FastneusError(f"{len(pats)} patterns for {n} images: give one per image or one for all",
                             field="--patterns")
     wh0 = image_size(images[0])
@@ -277,8 +294,10 @@ def make_scene_from_calibration(calib, images: Sequence, patterns: Sequence, pos
         cam, proj = calib
     else:
         # the pattern images are the projector's frame buffer: their size is its resolution
-        cam, proj = read_procam_calibration(calib, proj_size=proj_size or image_size(pats[0]), units=units,
-                                            cam_size=wh0)
+        cam, proj = read_procam_calibration(calib, proj_size=proj_size or (image_size(pats[0]) if pats else None),
+                                            units=units, cam_size=wh0, require_projector=bool(pats))
+    if proj is None and pats:
+        raise FastneusError("patterns given but the calibration has no projector", field="--patterns")
     if (cam.width, cam.height) != wh0:
         raise FastneusError(f"image is {wh0[0]}x{wh0[1]} but the calibration's camera is "
                             f"{cam.width}x{cam.height}", file=images[0], field="--images")
@@ -331,13 +350,13 @@ def make_scene_from_calibration(calib, images: Sequence, patterns: Sequence, pos
     # built aside and moved in at the end: a failure leaves an earlier scene in ``out`` intact
     with staged_dir(out, replace=("image", "pattern")) as stage:
         _write_calibrated_scene(stage, out.resolve().name, cam, proj, images, pats, c2ws, center, radius,
-                                poses_path)
+                                poses_path, lasers)
     return Scene.load(out)
 
 
-def _write_calibrated_scene(out: Path, name: str, cam: Camera, proj: Projector, images: list[Path],
+def _write_calibrated_scene(out: Path, name: str, cam: Camera, proj: Projector | None, images: list[Path],
                             pats: list[Path], c2ws: list[np.ndarray], center, radius: float,
-                            poses_path: Path) -> None:
+                            poses_path: Path, lasers: dict) -> None:
     """Copy photos and patterns into ``out`` and write its validated ``scene.json``."""
     (out / "image").mkdir(parents=True, exist_ok=True)
     (out / "pattern").mkdir(parents=True, exist_ok=True)
@@ -345,6 +364,11 @@ def _write_calibrated_scene(out: Path, name: str, cam: Camera, proj: Projector, 
     for i, p in enumerate(images):
         dst = f"image/{i:03d}{p.suffix.lower()}"
         shutil.copyfile(p, out / dst)
+        laser_on = {lid: {"on": True} for lid in lasers}
+        if not pats:
+            frames.append({"image": dst, "camera": cam.id, "cam_to_world": c2ws[i].tolist(), "view": i,
+                           "projectors": laser_on})
+            continue
         q = pats[0 if len(pats) == 1 else i]
         key = str(q.resolve())
         if key not in pat_ids:
@@ -352,13 +376,15 @@ def _write_calibrated_scene(out: Path, name: str, cam: Camera, proj: Projector, 
             shutil.copyfile(q, out / f"pattern/{pid}{q.suffix.lower()}")
             pat_ids[key] = (pid, f"pattern/{pid}{q.suffix.lower()}")
         frames.append({"image": dst, "camera": cam.id, "cam_to_world": c2ws[i].tolist(), "view": i,
-                       "projectors": {proj.id: {"pattern": pat_ids[key][0]}}})
+                       "projectors": {proj.id: {"pattern": pat_ids[key][0]}, **laser_on}})
     data = {"format": FORMAT, "version": VERSION, "units": "m", "name": name,
             "bounds": {"center": np.asarray(center).tolist(), "radius": float(radius)},
             "cameras": {cam.id: {"K": cam.K.tolist(), "width": cam.width, "height": cam.height,
                                  "dist": np.asarray(cam.dist).tolist()}},
-            "projectors": {proj.id: {"K": proj.K.tolist(), "width": proj.width, "height": proj.height,
-                                     "proj_to_cam": proj.proj_to_cam.tolist()}},
+            "projectors": {**({proj.id: {"K": proj.K.tolist(), "width": proj.width, "height": proj.height,
+                                         "proj_to_cam": proj.proj_to_cam.tolist()}} if proj is not None else {}),
+                           **{lid: {"kind": "laser", "proj_to_cam": np.asarray(lp.proj_to_cam).tolist(),
+                                    "planes": planes_to_list(lp.planes)} for lid, lp in lasers.items()}},
             "patterns": {pid: {"file": f} for pid, f in pat_ids.values()},
             "frames": frames,
             "meta": {"source_format": "opencv-calibration", "poses": str(poses_path.resolve())}}

@@ -136,26 +136,50 @@ class _NumberDictUnpickler(pickle.Unpickler):
         raise _Refused("persistent ids")
 
 
-def _unwrap_object_array(obj: Any) -> Any:
-    """The single element of the unpickled 0-d object array stand-in."""
+def _unwrap_object_array(obj: Any, vector: bool = False) -> Any:
+    """The single element of the unpickled 0-d object array stand-in (``vector``: the list of
+    elements of a 1-d one)."""
     st = obj.state if isinstance(obj, _Array) else None
     if isinstance(st, tuple) and len(st) == 5:
         st = st[1:]  # (version, shape, dtype, fortran, data) -> drop the version
-    if not (isinstance(st, tuple) and len(st) == 4 and st[0] == () and isinstance(st[1], _Dtype)
-            and st[1].code in _OBJECT and isinstance(st[3], list) and len(st[3]) == 1):
-        raise _Refused("not a single pickled value")
-    return st[3][0]
+    if not (isinstance(st, tuple) and len(st) == 4 and isinstance(st[1], _Dtype) and st[1].code in _OBJECT
+            and isinstance(st[3], list)):
+        raise _Refused("not a pickled object array")
+    if st[0] == () and len(st[3]) == 1:
+        return st[3][0]
+    if vector and isinstance(st[0], tuple) and len(st[0]) == 1 and st[0][0] == len(st[3]):
+        return list(st[3])
+    raise _Refused("not a single pickled value")
 
 
-def read_number_dict(npz, key: str, file: Path) -> dict[str, float]:
-    """Decode ``npz[key]``, a pickled 0-d object array holding a dict of str -> number.
+def _check_plain(v: Any, depth: int = 0) -> None:
+    """Only numbers, strings and dict/list/tuple of them (what the official format pickles)."""
+    if depth > 8:
+        raise _Refused("nested too deeply")
+    if isinstance(v, dict):
+        for k, x in v.items():
+            if not isinstance(k, str):
+                raise _Refused(f"key {k!r} is not a string")
+            _check_plain(x, depth + 1)
+    elif isinstance(v, (list, tuple)):
+        for x in v:
+            _check_plain(x, depth + 1)
+    elif not isinstance(v, (int, float, str)) or v is None:
+        raise _Refused(f"not plain data: got {'an array' if isinstance(v, _Array) else type(v).__name__}")
+
+
+def read_pickled_value(npz, key: str, file: Path, want: str, vector: bool = False) -> Any:
+    """Decode ``npz[key]``, a pickled 0-d object array (``vector``: or a 1-d one) holding
+    plain data: numbers, strings, and dicts / lists / tuples of them.
 
     Only the globals needed to rebuild such an array are resolvable (to inert stand-ins,
-    never to the real numpy functions); a payload that references anything else, or a value
-    of another shape, is refused without executing it.
+    never to the real numpy functions); a payload that references anything else is refused
+    without executing it.
 
+    Args:
+        want: what the entry should hold, for the error message.
     Returns:
-        The dict with Python float values (finite or not: callers check ranges).
+        The value (a list of the elements for a 1-d array).
 
     Raises:
         FastneusError: one line naming ``file`` and ``key``.
@@ -164,7 +188,6 @@ def read_number_dict(npz, key: str, file: Path) -> dict[str, float]:
     zf = getattr(npz, "zip", None)
     if zf is None or member not in zf.namelist():
         raise FastneusError("missing key", file=file, field=key)
-    want = "expected a dict {ambient, diffuse, emissive} of numbers"
     try:
         with zf.open(member) as fh:
             raw = fh.read(MAX_PICKLE_BYTES + 1)
@@ -186,16 +209,29 @@ def read_number_dict(npz, key: str, file: Path) -> dict[str, float]:
         raise FastneusError(f"unreadable entry: {e}".splitlines()[0], file=file, field=key) from None
     if not dtype.hasobject:
         raise FastneusError(f"{want}, got a {dtype} array of shape {shape}", file=file, field=key)
-    if shape != ():
+    if shape != () and not (vector and len(shape) == 1):
         raise FastneusError(f"{want}, got an object array of shape {shape}", file=file, field=key)
     try:
-        obj = _unwrap_object_array(_NumberDictUnpickler(f).load())
+        obj = _unwrap_object_array(_NumberDictUnpickler(f).load(), vector)
+        _check_plain(obj)
     except _Refused as e:
         raise FastneusError(f"refused to unpickle: {e}; {want} (fastneus never runs code from scene files)",
                             file=file, field=key) from None
     except Exception as e:  # noqa: BLE001 - truncated or malformed pickle
         raise FastneusError(f"malformed pickled value ({type(e).__name__}); {want}", file=file,
                             field=key) from None
+    return obj
+
+
+def read_number_dict(npz, key: str, file: Path) -> dict[str, float]:
+    """Decode ``npz[key]``, a pickled 0-d object array holding a dict of str -> number (see
+    :func:`read_pickled_value`).
+
+    Returns:
+        The dict with Python float values (finite or not: callers check ranges).
+    """
+    want = "expected a dict {ambient, diffuse, emissive} of numbers"
+    obj = read_pickled_value(npz, key, file, want)
     if not isinstance(obj, dict):
         raise FastneusError(f"{want}, got {type(obj).__name__}", file=file, field=key)
     out: dict[str, float] = {}

@@ -20,6 +20,9 @@ from fastneus.kernels.occupancy import OccupancyGrid
 from fastneus.train.checkpoint import CKPT_NAME, load_checkpoint, restore, save_checkpoint  # noqa: F401 (re-export)
 from fastneus.train.guard import finite_step
 from fastneus.multishot import make_bank
+from fastneus.rig import Rig
+from fastneus.rig import load_into as rig_load
+from fastneus.rig import state_of as rig_state
 from fastneus.sampling import build_projection
 
 
@@ -91,11 +94,13 @@ class Trainer:
         # multi-shot viewpoints (e.g. Gray code) share one ray per pixel across their shots (fastneus.multishot)
         self.bank = make_bank(scene, self.frames, self.device, cfg, load_masks=self.masks_used,
                               brightness_cdf=cfg.bright_fraction > 0,
-                              background=cfg.background if want_bg else None, bg_tolerance=cfg.bg_tolerance)
+                              background=cfg.background if want_bg else None, bg_tolerance=cfg.bg_tolerance,
+                              refraction=cfg.refraction)
         if getattr(self.bank, "empty_masks", None):  # all-zero masks: the object is outside those views (or a wrong file)
             self.masks_note += f"; warning: empty (all-zero) mask {', '.join(self.bank.empty_masks)}"
         self.bg_used, self.bg_note = resolve_bg_prior(cfg, self.masks_used, self.bank.bg_fraction)
-        self.proj = build_projection(scene, self.frames, self.device)
+        self.proj = build_projection(scene, self.frames, self.device, refraction=cfg.refraction)
+        self.rig = Rig(scene, self.frames, self.bank, self.proj, cfg, self.device)  # real-rig corrections
         self.field = SDFField(cfg, self.device)
         self.field.init_color_bias(self.bank.mean_rgb())
         self.grid = OccupancyGrid(cfg.occ_resolution, self.device)
@@ -114,7 +119,7 @@ class Trainer:
         self.log_ir = torch.nn.Parameter(torch.tensor([math.log(max(ir0, 1e-4))], device=self.device))
         self.log_ib = torch.nn.Parameter(torch.tensor([math.log(max(ib0, 1e-4))], device=self.device))
         groups = self.field.param_groups(cfg) + [
-            {"params": [self.log_ir, self.log_ib], "lr": cfg.lr_illum, "name": "illum"}]
+            {"params": [self.log_ir, self.log_ib], "lr": cfg.lr_illum, "name": "illum"}] + self.rig.param_groups(cfg)
         for g in groups:
             g["base_lr"] = g["lr"]
         self.opt = torch.optim.Adam(groups, betas=(0.9, 0.99), eps=cfg.adam_eps)
@@ -167,6 +172,8 @@ class Trainer:
                 # decays with the rest: a constant Adam step of lr_illum on log(i) would leave i_r, i_b
                 # jittering by ~lr_illum (3%) at the end of the run
                 g["lr"] = g["base_lr"] * decay if learn_illum else 0.0
+            elif g["name"].startswith("rig_"):  # own warm-up, then the common decay
+                g["lr"] = g["base_lr"] * decay * self.rig.lr_gate(g["name"], p)
             elif frozen and g["name"] in ("geometry", "variance"):
                 g["lr"] = 0.0
             else:
@@ -198,9 +205,9 @@ class Trainer:
         self.field.set_progress(p)
         self.update_grid(p)
         self._set_lr(p)
-        batch = self.bank.sample(self.n_rays, self.gen, bright_fraction=c.bright_fraction)
+        batch = self.rig.rays(self.bank.sample(self.n_rays, self.gen, bright_fraction=c.bright_fraction))
         i_r, i_b = self.illumination()
-        out = render_rays(self.field, self.grid.bits, self.grid.resolution, self.proj, batch["origins"],
+        out = render_rays(self.field, self.grid.bits, self.grid.resolution, self.rig.projection(), batch["origins"],
                           batch["dirs"], batch["fidx"], c, i_r=i_r, i_b=i_b, cos_anneal=self.cos_anneal(p),
                           jitter=True, curvature=c.curvature_weight > 0)
         s = out["n_samples"]
@@ -218,9 +225,8 @@ class Trainer:
         self.empty_steps = 0
         # the camera clips at 1: a rendered value above it is a saturated pixel, not an error
         # (unclipped, bright pattern pixels would pull i_r down on Normal-light scenes)
-        bgc = c.background * (1.0 - out["opacity"])
-        # [B, 3], or [B, K, 3] with K shots per ray (multi-shot)
-        pred = (out["color"] + bgc.view(-1, *([1] * (out["color"].dim() - 1)))).clamp(max=1.0)
+        # [B, 3], or [B, K, 3] with K shots per ray (multi-shot); + water (fastneus.rig)
+        pred = self.rig.composite(out["color"], out, c.background).clamp(max=1.0)
         err = (pred - batch["rgb"]).abs()
         loss_rgb = err.mean()
         grad = out["grad"]
@@ -323,19 +329,22 @@ class Trainer:
         from fastneus.kernels import prepare_kernels
 
         prepare_kernels(self.device, say=self.console.print if self.console is not None else None,
-                        backend=self.cfg.backend)
+                        backend=self.cfg.backend,
+                        ops=("hash_encode", "march_rays", "render_pattern") + self.rig.kernel_ops())
 
     # ------------------------------------------------------------------ checkpoints
     def state(self) -> dict:
         return {"step": self.step, "elapsed": self.elapsed, "n_rays": self.n_rays, "skipped": self.skipped,
                 "config": self.cfg.to_dict(), "field": self.field.state_dict(), "grid": self.grid.state_dict(),
                 "log_ir": self.log_ir.detach().cpu(), "log_ib": self.log_ib.detach().cpu(),
-                "optimizer": self.opt.state_dict(), "frames": self.frames,
+                "optimizer": self.opt.state_dict(), "frames": self.frames, "rig": rig_state(self.rig),
                 "gen": self.gen.get_state().cpu()}
 
     def save(self) -> Path:
         """Write the checkpoint atomically (temp file + rename): a crash keeps the previous one."""
-        return save_checkpoint(self.state(), self.out / CKPT_NAME)
+        path = save_checkpoint(self.state(), self.out / CKPT_NAME)
+        self.rig.write_json(self.out)
+        return path
 
     def load_state(self, st: dict, with_optimizer: bool = True) -> None:
         self.field.load_state_dict(st["field"])
@@ -343,6 +352,7 @@ class Trainer:
         with torch.no_grad():
             self.log_ir.copy_(st["log_ir"].to(self.device))
             self.log_ib.copy_(st["log_ib"].to(self.device))
+        rig_load(self.rig, st.get("rig"))
         self.step, self.elapsed = int(st["step"]), float(st.get("elapsed", 0.0))
         self.n_rays, self.skipped = int(st.get("n_rays", self.n_rays)), int(st.get("skipped", 0))
         self.field.set_progress(self.progress())
@@ -350,7 +360,7 @@ class Trainer:
             self.opt.load_state_dict(st["optimizer"])
             for g in self.opt.param_groups:  # base_lr may differ if the config changed
                 g["base_lr"] = {"geometry": self.cfg.lr, "color": self.cfg.lr, "variance": self.cfg.lr_variance,
-                                "illum": self.cfg.lr_illum}[g["name"]]
+                                "illum": self.cfg.lr_illum}.get(g["name"], g["base_lr"])
         if "gen" in st and self.device.type == "cpu":
             self.gen.set_state(st["gen"])
 
