@@ -119,6 +119,9 @@ def test_trainer_uses_shot_bank_and_trains(gray, tmp_path):
     assert tr.step == 6 and tr.skipped == 0
     flat = load_config("cpu-quick", ["group_shots=false"])
     assert isinstance(make_bank(gray, [0, 1, 12], "cpu", flat), RayBank)
+    # pose refinement indexes per-frame camera tables: it takes the per-frame bank
+    assert isinstance(make_bank(gray, [0, 1, 12], "cpu", load_config("cpu-quick", ["pose_refine=true"])), RayBank)
+    assert isinstance(make_bank(gray, [0, 1, 12], "cpu", load_config("cpu-quick")), ShotBank)
     with pytest.raises(FastneusError, match="shots_per_ray"):
         load_config("cpu-quick", ["shots_per_ray=-1"])
 
