@@ -38,7 +38,8 @@ import torch
 import warp as wp
 
 from . import _warp
-from .render import _Z_MIN, MAX_PROJECTORS, PatternStore, _bilinear, _bilinear_vg, _f32, _i32, _transform, mat34
+from .render import (_Z_MIN, PatternStore, _bilinear, _bilinear_torch, _bilinear_vg, _f32, _i32, _pixel_vjp,
+                     _transform, _transform_vjp, check_projection, mat34)
 
 _warp.init()
 _wp = partial(_warp.to_wp, ctype=True)
@@ -50,6 +51,15 @@ PORT_FLOATS = 8  # normal (3), d0, thickness, n_air / n_glass, n_air / n_water, 
 BISECT_STEPS = wp.constant(10)
 NEWTON_STEPS = wp.constant(6)
 _S_MAX = wp.constant(0.999999)
+
+
+@wp.func
+def _scatter_dW(d_W: wp.array(dtype=float), base: int, r0: wp.vec4, r1: wp.vec4, r2: wp.vec4):
+    """Add the three rows of one projector's [3, 4] W gradient at ``d_W[base:base + 12]``."""
+    for j in range(4):
+        wp.atomic_add(d_W, base + j, r0[j])
+        wp.atomic_add(d_W, base + 4 + j, r1[j])
+        wp.atomic_add(d_W, base + 8 + j, r2[j])
 
 
 @wp.func
@@ -212,9 +222,7 @@ def _project_bwd(pos: wp.array(dtype=wp.vec3), offsets: wp.array(dtype=wp.int32)
                             accB[t] = accB[t] + wp.dot(gqk, v)
                             qk += blur[k, t] * v
                             g2 += blur[k, t] * gt
-                    gX = (g2[0] * wp.vec3(Kf[0, 0], Kf[0, 1], Kf[0, 2])
-                          + g2[1] * wp.vec3(Kf[1, 0], Kf[1, 1], Kf[1, 2])) / z
-                    gX = gX - wp.vec3(0.0, 0.0, (g2[0] * px + g2[1] * py) / z)
+                    gX = _pixel_vjp(Kf, g2, px, py, z)
                     if has_port:
                         gX = _port_vjp(X, port, k, gX)
                     if use_att != 0:
@@ -224,10 +232,7 @@ def _project_bwd(pos: wp.array(dtype=wp.vec3), offsets: wp.array(dtype=wp.int32)
                         if L > 0.0:
                             gX = gX - (wp.dot(gl, sg) / L) * X
                     if need_pos != 0:
-                        d_pos[i] = d_pos[i] + wp.vec3(
-                            Wf[0, 0] * gX[0] + Wf[1, 0] * gX[1] + Wf[2, 0] * gX[2],
-                            Wf[0, 1] * gX[0] + Wf[1, 1] * gX[1] + Wf[2, 1] * gX[2],
-                            Wf[0, 2] * gX[0] + Wf[1, 2] * gX[1] + Wf[2, 2] * gX[2])
+                        d_pos[i] = d_pos[i] + _transform_vjp(Wf, gX)
                     ph = wp.vec4(p[0], p[1], p[2], 1.0)
                     accW += gX[0] * ph
                     accW1 += gX[1] * ph
@@ -236,25 +241,14 @@ def _project_bwd(pos: wp.array(dtype=wp.vec3), offsets: wp.array(dtype=wp.int32)
                 for t in range(T):
                     wp.atomic_add(d_blur, k * T + t, accB[t])
             if need_W != 0:
-                base = (f * P + k) * 12
-                for j in range(4):
-                    wp.atomic_add(d_W, base + j, accW[j])
-                    wp.atomic_add(d_W, base + 4 + j, accW1[j])
-                    wp.atomic_add(d_W, base + 8 + j, accW2[j])
+                _scatter_dW(d_W, (f * P + k) * 12, accW, accW1, accW2)
     if need_sigma != 0:
         for c in range(3):
             wp.atomic_add(d_sigma, c, accS[c])
 
 
 def _check(pos, proj_K, proj_W, proj_pattern, patterns, blur, port) -> int:
-    if proj_W.ndim != 4 or tuple(proj_W.shape[2:]) != (3, 4):
-        raise ValueError(f"proj_W must be [F, P, 3, 4], got {tuple(proj_W.shape)}")
-    F, P = proj_W.shape[:2]
-    if tuple(proj_K.shape) != (F, P, 3, 3) or tuple(proj_pattern.shape) != (F, P):
-        raise ValueError(f"proj_K {tuple(proj_K.shape)} / proj_pattern {tuple(proj_pattern.shape)} do not match "
-                         f"proj_W [F={F}, P={P}, 3, 4]")
-    if P > MAX_PROJECTORS:
-        raise ValueError(f"at most {MAX_PROJECTORS} projectors per frame are supported, got {P}")
+    F, P = check_projection(proj_K, proj_W, proj_pattern)
     if blur.ndim != 2 or blur.shape[0] != P:
         raise ValueError(f"blur must be [P={P}, n*n], got {tuple(blur.shape)}")
     n = int(round(blur.shape[1] ** 0.5))
@@ -429,25 +423,6 @@ def project_pattern_torch(
     return q
 
 
-def _bilinear_torch(buf, off, w, h, valid, x, y, dtype):
-    """Bilinear pattern samples [S, 3] at array coords (x, y) [S] (zeros outside), as the Warp op."""
-    ch = torch.arange(3, device=x.device)
-    xf = torch.floor(x.detach()).clamp(-2.0, 2.0**30)
-    yf = torch.floor(y.detach()).clamp(-2.0, 2.0**30)
-    fx, fy = (x - xf)[:, None], (y - yf)[:, None]
-    x0, y0 = xf.long(), yf.long()
-    vals = []
-    for dy in (0, 1):
-        for dx in (0, 1):
-            xi, yi = x0 + dx, y0 + dy
-            inb = valid & (xi >= 0) & (xi < w) & (yi >= 0) & (yi < h)
-            idx = off + (yi.clamp(min=0) * w + xi.clamp(min=0)) * 3
-            idx = torch.where(inb, idx, torch.zeros_like(idx))
-            vals.append(buf[idx[:, None] + ch].to(dtype) / 255.0 * inb[:, None].to(dtype))
-    v00, v10, v01, v11 = vals
-    return (v00 * (1.0 - fx) + v10 * fx) * (1.0 - fy) + (v01 * (1.0 - fx) + v11 * fx) * fy
-
-
 def identity_blur(n_proj: int, n: int = 1, device="cpu") -> torch.Tensor:
     """[P, n*n] kernels that leave the pattern unchanged (1 at the centre tap)."""
     b = torch.zeros(n_proj, n * n, device=device)
@@ -533,20 +508,13 @@ def _laser_bwd(pos: wp.array(dtype=wp.vec3), offsets: wp.array(dtype=wp.int32), 
                     g, dg = _laser_plane(planes, k, l, X)
                     gX += wp.dot(gq, wp.vec3(planes[k, l, 8], planes[k, l, 9], planes[k, l, 10])) * dg
                 if need_pos != 0:
-                    d_pos[i] = d_pos[i] + wp.vec3(
-                        Wf[0, 0] * gX[0] + Wf[1, 0] * gX[1] + Wf[2, 0] * gX[2],
-                        Wf[0, 1] * gX[0] + Wf[1, 1] * gX[1] + Wf[2, 1] * gX[2],
-                        Wf[0, 2] * gX[0] + Wf[1, 2] * gX[1] + Wf[2, 2] * gX[2])
+                    d_pos[i] = d_pos[i] + _transform_vjp(Wf, gX)
                 ph = wp.vec4(p[0], p[1], p[2], 1.0)
                 accW += gX[0] * ph
                 accW1 += gX[1] * ph
                 accW2 += gX[2] * ph
             if need_W != 0:
-                base = (f * P + k) * 12
-                for j in range(4):
-                    wp.atomic_add(d_W, base + j, accW[j])
-                    wp.atomic_add(d_W, base + 4 + j, accW1[j])
-                    wp.atomic_add(d_W, base + 8 + j, accW2[j])
+                _scatter_dW(d_W, (f * P + k) * 12, accW, accW1, accW2)
 
 
 def _check_laser(pos, proj_W, laser_on, planes) -> None:

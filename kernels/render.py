@@ -141,6 +141,23 @@ def _transform(Wf: mat34, p: wp.vec3):
 
 
 @wp.func
+def _transform_vjp(Wf: mat34, g: wp.vec3):
+    """Gradient w.r.t. p of <g, W p>: W[:, :3]^T g."""
+    return wp.vec3(
+        Wf[0, 0] * g[0] + Wf[1, 0] * g[1] + Wf[2, 0] * g[2],
+        Wf[0, 1] * g[0] + Wf[1, 1] * g[1] + Wf[2, 1] * g[2],
+        Wf[0, 2] * g[0] + Wf[1, 2] * g[1] + Wf[2, 2] * g[2],
+    )
+
+
+@wp.func
+def _pixel_vjp(Kf: wp.mat33, g2: wp.vec2, px: float, py: float, z: float):
+    """Gradient w.r.t. the projector-frame point X of <g2, (px, py)>, px = (K X)_0 / z, py = (K X)_1 / z."""
+    gX = (g2[0] * wp.vec3(Kf[0, 0], Kf[0, 1], Kf[0, 2]) + g2[1] * wp.vec3(Kf[1, 0], Kf[1, 1], Kf[1, 2])) / z
+    return gX - wp.vec3(0.0, 0.0, (g2[0] * px + g2[1] * py) / z)
+
+
+@wp.func
 def _texel(pat: wp.array(dtype=wp.uint8), off: int, w: int, h: int, xi: int, yi: int):
     if xi < 0 or xi >= w or yi < 0 or yi >= h:
         return wp.vec3(0.0)
@@ -360,15 +377,8 @@ def _render_bwd(
                         m = meta[pid]
                         qk, g2 = _bilinear_vg(pat, m[0], m[1], m[2], px - 0.5, py - 0.5, gq)
                         q += qk
-                        # px = (K X)_0 / z, py = (K X)_1 / z
-                        gX = (g2[0] * wp.vec3(Kf[0, 0], Kf[0, 1], Kf[0, 2])
-                              + g2[1] * wp.vec3(Kf[1, 0], Kf[1, 1], Kf[1, 2])) / z
-                        gX = gX - wp.vec3(0.0, 0.0, (g2[0] * px + g2[1] * py) / z)
-                        gp += wp.vec3(
-                            Wf[0, 0] * gX[0] + Wf[1, 0] * gX[1] + Wf[2, 0] * gX[2],
-                            Wf[0, 1] * gX[0] + Wf[1, 1] * gX[1] + Wf[2, 1] * gX[2],
-                            Wf[0, 2] * gX[0] + Wf[1, 2] * gX[1] + Wf[2, 2] * gX[2],
-                        )
+                        gX = _pixel_vjp(Kf, g2, px, py, z)
+                        gp += _transform_vjp(Wf, gX)
                         if need_W != 0:
                             for row in range(3):
                                 accW[k, row * 4 + 0] = accW[k, row * 4 + 0] + gX[row] * p[0]
@@ -513,7 +523,8 @@ class _RenderPattern(torch.autograd.Function):
         return tuple(res) + (None,) * 12
 
 
-def _check(sdf, offsets, proj_K, proj_W, proj_pattern, patterns) -> None:
+def check_projection(proj_K, proj_W, proj_pattern) -> tuple[int, int]:
+    """Validate the projection table shapes; returns (F, P)."""
     if proj_W.ndim != 4 or tuple(proj_W.shape[2:]) != (3, 4):
         raise ValueError(f"proj_W must be [F, P, 3, 4], got {tuple(proj_W.shape)}")
     F, P = proj_W.shape[:2]
@@ -522,6 +533,11 @@ def _check(sdf, offsets, proj_K, proj_W, proj_pattern, patterns) -> None:
                          f"proj_W [F={F}, P={P}, 3, 4]")
     if P > MAX_PROJECTORS:
         raise ValueError(f"at most {MAX_PROJECTORS} projectors per frame are supported, got {P}")
+    return F, P
+
+
+def _check(sdf, offsets, proj_K, proj_W, proj_pattern, patterns) -> None:
+    check_projection(proj_K, proj_W, proj_pattern)
     if patterns.buffer.device != sdf.device:
         raise ValueError(f"PatternStore is on {patterns.buffer.device} but the samples are on {sdf.device}; "
                          "move it once with patterns.to(device)")
@@ -593,6 +609,28 @@ def render_pattern(
 # ----------------------------------------------------------------------------------------
 # Pure torch twin
 # ----------------------------------------------------------------------------------------
+def _bilinear_torch(buf, off, w, h, valid, x, y, dtype):
+    """Bilinear pattern samples [S, 3] at array coords (x, y) [S] (zeros outside), as the Warp ``_bilinear``.
+
+    The (non-differentiable) cell corner is clamped before integer conversion; fx keeps x's gradient.
+    """
+    ch = torch.arange(3, device=x.device)
+    xf = torch.floor(x.detach()).clamp(-2.0, 2.0**30)
+    yf = torch.floor(y.detach()).clamp(-2.0, 2.0**30)
+    fx, fy = (x - xf)[:, None], (y - yf)[:, None]
+    x0, y0 = xf.long(), yf.long()
+    vals = []
+    for dy in (0, 1):
+        for dx in (0, 1):
+            xi, yi = x0 + dx, y0 + dy
+            inb = valid & (xi >= 0) & (xi < w) & (yi >= 0) & (yi < h)
+            idx = off + (yi.clamp(min=0) * w + xi.clamp(min=0)) * 3
+            idx = torch.where(inb, idx, torch.zeros_like(idx))
+            vals.append(buf[idx[:, None] + ch].to(dtype) / 255.0 * inb[:, None].to(dtype))
+    v00, v10, v01, v11 = vals
+    return (v00 * (1.0 - fx) + v10 * fx) * (1.0 - fy) + (v01 * (1.0 - fx) + v11 * fx) * fy
+
+
 def _pattern_sum_torch(pos, frame_s, proj_K, proj_W, proj_pattern, patterns):
     """Q(P) summed over the projectors of each sample's frame; [S, 3] in pos's dtype."""
     S, dtype = pos.shape[0], pos.dtype
@@ -601,7 +639,6 @@ def _pattern_sum_torch(pos, frame_s, proj_K, proj_W, proj_pattern, patterns):
     meta = patterns.meta.long()
     if meta.shape[0] == 0 or buf.numel() == 0:
         return q
-    ch = torch.arange(3, device=pos.device)
     for k in range(proj_W.shape[1]):
         pid = proj_pattern.long()[frame_s, k]  # [S]
         Wk = proj_W[frame_s, k].to(dtype)  # [S, 3, 4]
@@ -615,25 +652,7 @@ def _pattern_sum_torch(pos, frame_s, proj_K, proj_W, proj_pattern, patterns):
         x = u[:, 0] / zs - 0.5
         y = u[:, 1] / zs - 0.5
         m = meta[pid.clamp(min=0)]  # [S, 3]
-        off, w, h = m[:, 0], m[:, 1], m[:, 2]
-        # clamp the (non-differentiable) cell corner before integer conversion; fx keeps x's gradient
-        xf = torch.floor(x.detach()).clamp(-2.0, 2.0**30)
-        yf = torch.floor(y.detach()).clamp(-2.0, 2.0**30)
-        fx = x - xf
-        fy = y - yf
-        x0, y0 = xf.long(), yf.long()
-        vals = []
-        for dy in (0, 1):
-            for dx in (0, 1):
-                xi, yi = x0 + dx, y0 + dy
-                inb = valid & (xi >= 0) & (xi < w) & (yi >= 0) & (yi < h)
-                idx = off + (yi.clamp(min=0) * w + xi.clamp(min=0)) * 3
-                idx = torch.where(inb, idx, torch.zeros_like(idx))
-                v = buf[idx[:, None] + ch].to(dtype) / 255.0
-                vals.append(v * inb[:, None].to(dtype))
-        v00, v10, v01, v11 = vals
-        fx, fy = fx[:, None], fy[:, None]
-        qk = (v00 * (1.0 - fx) + v10 * fx) * (1.0 - fy) + (v01 * (1.0 - fx) + v11 * fx) * fy
+        qk = _bilinear_torch(buf, m[:, 0], m[:, 1], m[:, 2], valid, x, y, dtype)
         q = q + qk * valid[:, None].to(dtype)
     return q
 
