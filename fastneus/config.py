@@ -112,6 +112,7 @@ class Config:
     # --- real rigs (fastneus/rig.py, docs/REAL-RIGS.md); every part off by default ---
     pose_refine: bool = False          # learn an SE(3) correction per viewpoint camera and per projector
     pose_anchor: bool = True           # the first training viewpoint's camera stays fixed (world frame)
+    pose_fix_scale: bool = True        # with the anchor, hold the rig's global scale (its one free direction)
     lr_pose: float = 1e-3              # on the corrections (radians, normalised units)
     pose_warmup_frac: float = 0.1      # corrections frozen until the geometry has formed
     projector_blur: int = 0            # learned n x n separable blur of each projector's pattern (0 = off; odd n <= 7)

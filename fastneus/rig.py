@@ -150,6 +150,54 @@ class Rig(torch.nn.Module):
         self.register_buffer("W4", W4.float().to(self.device), persistent=False)
         self.register_buffer("cam_to_proj", A.float().to(self.device), persistent=False)
         self.register_buffer("rigged", rigged.to(self.device), persistent=False)
+        g = self.scale_gauge(scene) if (self.cfg.pose_anchor and self.cfg.pose_fix_scale) else None
+        self.register_buffer("gauge", None if g is None else g.float().to(self.device), persistent=False)
+
+    def scale_gauge(self, scene) -> torch.Tensor | None:
+        """Unit direction [V*3 + P*3] of the global-scale mode in the translation corrections.
+
+        With the first camera anchored, scaling the whole rig about that camera's centre (the
+        scene, every other camera centre, every projector position) leaves every image unchanged,
+        so the joint problem has one free direction; on the GPU protocol the camera translations
+        drifted along it (28 mm for a 10 mm perturbation). To first order it is
+        ``v_view = R_c2w^T (c_view - c_anchor) / radius`` for the cameras (``cam_to_world @ E``
+        moves the centre by ``R_c2w radius v``), ``v_p = R_p2c^T t_p / radius`` for a rigged
+        projector (``t_p`` its position in the camera frame) and ``R_p2w^T (p - c_anchor) / radius``
+        (mean over frames) for a free one. None when the rig has no such direction (one view and
+        no projector translation).
+        """
+        frames_of = {v: [i for i in self.frames if scene.frames[i].view == v] for v in self.view_ids}
+        c0 = scene.cam_to_world(frames_of[self.view_ids[0]][0])[:3, 3]
+        parts = []
+        for v in self.view_ids:
+            T = scene.cam_to_world(frames_of[v][0])
+            parts.append(T[:3, :3].T @ (T[:3, 3] - c0))
+        for pid in self.proj_ids:
+            pj = scene.projectors[pid]
+            if pj.proj_to_cam is not None:
+                T = np.asarray(pj.proj_to_cam)
+                parts.append(T[:3, :3].T @ T[:3, 3])
+            else:
+                acc = [scene.frames[i].projectors[pid].proj_to_world for i in self.frames
+                       if scene.frames[i].projectors.get(pid) is not None
+                       and scene.frames[i].projectors[pid].proj_to_world is not None]
+                parts.append(np.mean([a[:3, :3].T @ (a[:3, 3] - c0) for a in acc], 0) if acc else np.zeros(3))
+        if not self.proj_ids:
+            parts.append(np.zeros(3))
+        g = torch.as_tensor(np.concatenate(parts) / self.radius, dtype=torch.float64)
+        n = g.norm()
+        return None if n < 1e-9 else g / n
+
+    @torch.no_grad()
+    def fix_gauge(self) -> None:
+        """Remove the global-scale component from the translation corrections (after each step)."""
+        if not self.pose_on or self.gauge is None:
+            return
+        V = self.cam_xi.shape[0]
+        x = torch.cat([self.cam_xi[:, 3:].reshape(-1), self.proj_xi[:, 3:].reshape(-1)])
+        x = x - (x @ self.gauge) * self.gauge
+        self.cam_xi[:, 3:] = x[: V * 3].view(V, 3)
+        self.proj_xi[:, 3:] = x[V * 3:].view(-1, 3)
 
     def _init_veiling_light(self, bank) -> None:
         """Start the veiling light at the colour of the background (pixels outside the masks,

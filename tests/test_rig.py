@@ -72,6 +72,52 @@ def test_corrections_undo_a_known_perturbation_exactly(tmp_path):
     assert pose_errors(pert, truth, frames)["cam_rot_deg_mean"] == pytest.approx(2.0, rel=1e-6)
 
 
+def test_scale_gauge_is_the_global_scale_mode_and_is_removed(tmp_path):
+    """Corrections along ``rig.gauge`` scale the rig about the anchor camera (every other camera
+    centre and every projector position by the same factor, rotations unchanged): the one move
+    that leaves all images unchanged. ``fix_gauge`` removes exactly that component."""
+    scene = make_scene(tmp_path / "s", n=4, n_proj=2, seed=int(np.random.default_rng().integers(1 << 30)))
+    frames = [0, 1, 2, 3]
+    rig = Rig(scene, frames, RayBank(scene, frames, "cpu"), build_projection(scene, frames, "cpu"), _cfg(), "cpu")
+    g = rig.gauge.double()
+    assert g.shape == (3 * (len(rig.view_ids) + len(rig.proj_ids)),) and abs(float(g.norm()) - 1) < 1e-6
+    eps = 1e-4
+    V = len(rig.view_ids)
+    with torch.no_grad():
+        rig.cam_xi[:, 3:] = (eps * g[: 3 * V]).view(V, 3).float()
+        rig.proj_xi[:, 3:] = (eps * g[3 * V:]).view(-1, 3).float()
+    ref = rig.refined_poses()
+    c0 = scene.cam_to_world(0)[:3, 3]
+    ratios = []
+    for a, i in enumerate(frames[1:], 1):
+        c, c_new = scene.cam_to_world(i)[:3, 3], ref["cam_to_world"][a][:3, 3]
+        assert np.allclose(ref["cam_to_world"][a][:3, :3], scene.cam_to_world(i)[:3, :3], atol=1e-6)
+        d, r = c_new - c, c - c0
+        lam = float(d @ r / (r @ r))
+        assert np.linalg.norm(d - lam * r) < 1e-3 * np.linalg.norm(d), "camera moved off the scale direction"
+        ratios.append(lam)
+    for pid in rig.proj_ids:
+        t, t_new = scene.projectors[pid].proj_to_cam[:3, 3], ref["projectors"][pid]["proj_to_cam"][:3, 3]
+        ratios.append(float((t_new - t) @ t / (t @ t)))
+    assert min(ratios) > 0 and max(ratios) / min(ratios) < 1 + 1e-3, ratios  # one common factor
+    # fix_gauge: a pure scale move vanishes; a random correction keeps everything but that part
+    rig.fix_gauge()
+    assert float(rig.cam_xi.detach().abs().max()) < 1e-9 and float(rig.proj_xi.detach().abs().max()) < 1e-9
+    with torch.no_grad():
+        rig.cam_xi.normal_(0, 1e-2)
+        rig.proj_xi.normal_(0, 1e-2)
+    before = torch.cat([rig.cam_xi[:, 3:].reshape(-1), rig.proj_xi[:, 3:].reshape(-1)]).double()
+    rot = (rig.cam_xi[:, :3].clone(), rig.proj_xi[:, :3].clone())
+    rig.fix_gauge()
+    after = torch.cat([rig.cam_xi[:, 3:].reshape(-1), rig.proj_xi[:, 3:].reshape(-1)]).double()
+    assert abs(float(after @ g)) < 1e-6
+    torch.testing.assert_close(after, before - (before @ g) * g, atol=1e-6, rtol=0)
+    assert torch.equal(rot[0], rig.cam_xi[:, :3]) and torch.equal(rot[1], rig.proj_xi[:, :3])
+    off = Rig(scene, frames, RayBank(scene, frames, "cpu"), build_projection(scene, frames, "cpu"),
+              _cfg(pose_fix_scale="false"), "cpu")
+    assert off.gauge is None
+
+
 def _smooth_pattern(h, w, seed):
     rng = np.random.default_rng(seed)
     p = cv2.GaussianBlur(rng.uniform(0, 255, (h, w, 3)).astype(np.float32), (0, 0), 3)

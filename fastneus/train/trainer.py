@@ -250,6 +250,7 @@ class Trainer:
         self.opt.zero_grad(set_to_none=True)
         loss.backward()
         stepped = finite_step(self.opt, loss)  # NaN/Inf guard
+        self.rig.fix_gauge()
         self.step += 1
         if not stepped:
             self.skipped += 1
