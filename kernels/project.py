@@ -1,8 +1,8 @@
 """Projected light at sample points, Q(P): pattern blur, flat-port refraction, attenuation.
 
-``project_pattern`` is the Warp op (forward one thread per sample, backward one thread per
-ray so the shared blur, attenuation and pose gradients are summed per ray before one atomic
-each); ``project_pattern_torch`` is its pure-torch twin (same signature and maths). The
+``project_pattern`` is the Warp op (forward and backward one thread per sample; the shared
+blur, attenuation and pose gradients are added into striped buffers, see ``_stripes``);
+``project_pattern_torch`` is its pure-torch twin (same signature and maths). The
 render op takes the result as ``q_ext`` instead of sampling the patterns itself. See
 docs/INTERNALS.md, section "project_pattern".
 
@@ -46,7 +46,6 @@ _wp = partial(_warp.to_wp, ctype=True)
 wp.set_module_options({"enable_backward": False})
 
 MAX_TAPS = 49  # n <= 7
-_taps = wp.types.vector(length=MAX_TAPS, dtype=wp.float32)
 PORT_FLOATS = 8  # normal (3), d0, thickness, n_air / n_glass, n_air / n_water, flag (1 = port)
 BISECT_STEPS = wp.constant(10)
 NEWTON_STEPS = wp.constant(6)
@@ -54,12 +53,12 @@ _S_MAX = wp.constant(0.999999)
 
 
 @wp.func
-def _scatter_dW(d_W: wp.array(dtype=float), base: int, r0: wp.vec4, r1: wp.vec4, r2: wp.vec4):
-    """Add the three rows of one projector's [3, 4] W gradient at ``d_W[base:base + 12]``."""
+def _scatter_dW(d_W: wp.array2d(dtype=float), row: int, base: int, gX: wp.vec3, ph: wp.vec4):
+    """Add gX [p, 1]^T (one sample's [3, 4] W gradient of one projector) at ``d_W[row, base:base + 12]``."""
     for j in range(4):
-        wp.atomic_add(d_W, base + j, r0[j])
-        wp.atomic_add(d_W, base + 4 + j, r1[j])
-        wp.atomic_add(d_W, base + 8 + j, r2[j])
+        wp.atomic_add(d_W, row, base + j, gX[0] * ph[j])
+        wp.atomic_add(d_W, row, base + 4 + j, gX[1] * ph[j])
+        wp.atomic_add(d_W, row, base + 8 + j, gX[2] * ph[j])
 
 
 @wp.func
@@ -164,87 +163,80 @@ def _project_fwd(pos: wp.array(dtype=wp.vec3), ray_index: wp.array(dtype=wp.int3
 
 
 @wp.kernel
-def _project_bwd(pos: wp.array(dtype=wp.vec3), offsets: wp.array(dtype=wp.int32), counts: wp.array(dtype=wp.int32),
-                 ray_frame: wp.array(dtype=wp.int32), K: wp.array2d(dtype=wp.mat33), W: wp.array2d(dtype=mat34),
-                 proj_pattern: wp.array2d(dtype=wp.int32), pat: wp.array(dtype=wp.uint8),
-                 meta: wp.array(dtype=wp.vec3i), blur: wp.array2d(dtype=float), n: int,
+def _project_bwd(pos: wp.array(dtype=wp.vec3), ray_index: wp.array(dtype=wp.int32), ray_frame: wp.array(dtype=wp.int32),
+                 K: wp.array2d(dtype=wp.mat33), W: wp.array2d(dtype=mat34), proj_pattern: wp.array2d(dtype=wp.int32),
+                 pat: wp.array(dtype=wp.uint8), meta: wp.array(dtype=wp.vec3i), blur: wp.array2d(dtype=float), n: int,
                  port: wp.array2d(dtype=float), sigma: wp.array(dtype=wp.vec3), use_att: int,
                  g_q: wp.array(dtype=wp.vec3), need_pos: int, need_W: int, need_blur: int, need_sigma: int,
-                 d_pos: wp.array(dtype=wp.vec3), d_W: wp.array(dtype=float), d_blur: wp.array(dtype=float),
-                 d_sigma: wp.array(dtype=float)):
-    r = wp.tid()
-    start = offsets[r]
-    cnt = counts[r]
-    if cnt == 0:
-        return
-    f = ray_frame[r]
+                 stripes_W: int, stripes_B: int, d_pos: wp.array(dtype=wp.vec3), d_W: wp.array2d(dtype=float),
+                 d_blur: wp.array2d(dtype=float), d_sigma: wp.array2d(dtype=float)):
+    # One thread per sample, like the forward. The shared gradients go to row i % stripes of
+    # their striped buffers (see _stripes); zero contributions (dark or off-pattern taps) skip
+    # their atomic.
+    i = wp.tid()
+    f = ray_frame[ray_index[i]]
+    sW = i % stripes_W
+    sB = i % stripes_B
     P = proj_pattern.shape[1]
     h = float(n - 1) * 0.5
     T = n * n
     sg = sigma[0]
+    p = pos[i]
+    ph = wp.vec4(p[0], p[1], p[2], 1.0)
+    gq = g_q[i]
+    gp = wp.vec3(0.0)
     accS = wp.vec3(0.0)
     for k in range(P):
         pid = proj_pattern[f, k]
         if pid >= 0:
             Wf = W[f, k]
-            Kf = K[f, k]
-            m = meta[pid]
+            X = _transform(Wf, p)
+            V = X
             has_port = port[k, 7] != 0.0
-            accB = _taps()
-            accW = wp.vec4(0.0)
-            accW1 = wp.vec4(0.0)
-            accW2 = wp.vec4(0.0)
-            for i in range(start, start + cnt):
-                p = pos[i]
-                X = _transform(Wf, p)
-                V = X
+            if has_port:
+                V = _port_dir(X, port, k)
+            z = V[2]
+            if z > 1e-6:
+                Kf = K[f, k]
+                m = meta[pid]
+                L = float(0.0)
+                att = wp.vec3(1.0)
+                if use_att != 0:
+                    L = wp.length(X)
+                    att = wp.vec3(wp.exp(-sg[0] * L), wp.exp(-sg[1] * L), wp.exp(-sg[2] * L))
+                gqk = wp.cw_mul(gq, att)  # gradient reaching the unattenuated light of projector k
+                u = Kf * V
+                px = u[0] / z
+                py = u[1] / z
+                g2 = wp.vec2(0.0)
+                qk = wp.vec3(0.0)
+                for a in range(n):
+                    for b in range(n):
+                        t = a * n + b
+                        v, gt = _bilinear_vg(pat, m[0], m[1], m[2], px - 0.5 - h + float(b),
+                                             py - 0.5 - h + float(a), gqk)
+                        gb = wp.dot(gqk, v)
+                        if need_blur != 0 and gb != 0.0:
+                            wp.atomic_add(d_blur, sB, k * T + t, gb)
+                        qk += blur[k, t] * v
+                        g2 += blur[k, t] * gt
+                gX = _pixel_vjp(Kf, g2, px, py, z)
                 if has_port:
-                    V = _port_dir(X, port, k)
-                z = V[2]
-                if z > 1e-6:
-                    gq = g_q[i]
-                    L = float(0.0)
-                    att = wp.vec3(1.0)
-                    if use_att != 0:
-                        L = wp.length(X)
-                        att = wp.vec3(wp.exp(-sg[0] * L), wp.exp(-sg[1] * L), wp.exp(-sg[2] * L))
-                    gqk = wp.cw_mul(gq, att)  # gradient reaching the unattenuated light of projector k
-                    u = Kf * V
-                    px = u[0] / z
-                    py = u[1] / z
-                    g2 = wp.vec2(0.0)
-                    qk = wp.vec3(0.0)
-                    for a in range(n):
-                        for b in range(n):
-                            t = a * n + b
-                            v, gt = _bilinear_vg(pat, m[0], m[1], m[2], px - 0.5 - h + float(b),
-                                                 py - 0.5 - h + float(a), gqk)
-                            accB[t] = accB[t] + wp.dot(gqk, v)
-                            qk += blur[k, t] * v
-                            g2 += blur[k, t] * gt
-                    gX = _pixel_vjp(Kf, g2, px, py, z)
-                    if has_port:
-                        gX = _port_vjp(X, port, k, gX)
-                    if use_att != 0:
-                        # q = att * qk: d/dsigma_c = -L q_c; d/dX through L = |X|
-                        gl = wp.cw_mul(wp.cw_mul(gq, att), qk)
-                        accS -= L * gl
-                        if L > 0.0:
-                            gX = gX - (wp.dot(gl, sg) / L) * X
-                    if need_pos != 0:
-                        d_pos[i] = d_pos[i] + _transform_vjp(Wf, gX)
-                    ph = wp.vec4(p[0], p[1], p[2], 1.0)
-                    accW += gX[0] * ph
-                    accW1 += gX[1] * ph
-                    accW2 += gX[2] * ph
-            if need_blur != 0:
-                for t in range(T):
-                    wp.atomic_add(d_blur, k * T + t, accB[t])
-            if need_W != 0:
-                _scatter_dW(d_W, (f * P + k) * 12, accW, accW1, accW2)
-    if need_sigma != 0:
+                    gX = _port_vjp(X, port, k, gX)
+                if use_att != 0:
+                    # q = att * qk: d/dsigma_c = -L q_c; d/dX through L = |X|
+                    gl = wp.cw_mul(wp.cw_mul(gq, att), qk)
+                    accS -= L * gl
+                    if L > 0.0:
+                        gX = gX - (wp.dot(gl, sg) / L) * X
+                gp += _transform_vjp(Wf, gX)
+                if need_W != 0 and (gX[0] != 0.0 or gX[1] != 0.0 or gX[2] != 0.0):
+                    _scatter_dW(d_W, sW, (f * P + k) * 12, gX, ph)
+    if need_pos != 0:
+        d_pos[i] = gp
+    if need_sigma != 0 and (accS[0] != 0.0 or accS[1] != 0.0 or accS[2] != 0.0):
         for c in range(3):
-            wp.atomic_add(d_sigma, c, accS[c])
+            wp.atomic_add(d_sigma, sB, c, accS[c])
 
 
 def _check(pos, proj_K, proj_W, proj_pattern, patterns, blur, port) -> int:
@@ -261,6 +253,35 @@ def _check(pos, proj_K, proj_W, proj_pattern, patterns, blur, port) -> int:
     return n
 
 
+# Shared gradients (d_W [F, P, 12], d_blur [P, n*n], d_sigma [3]) of the per-sample backward.
+# All samples of a frame add into the same 12 + n*n addresses per projector: ~S / F same-address
+# atomics each (~2e4 at S = 3e5, F = 12), which serialise. Per-sample partials reduced by torch
+# would avoid atomics but cost S x P x (12 + n*n) floats (~0.6 GB at S = 3e5, P = 8, 7x7 taps).
+# So: striped buffers [stripes, ...], sample i adding into row i % stripes (the consecutive
+# samples of one ray land on different rows), summed over the rows by torch afterwards: the
+# contention drops by `stripes` for stripes x (F P 12 + P n*n + 3) floats. Warp's CPU backend
+# runs one thread, nothing contends there: one row, and the sum is a view. (Tests set other
+# counts on CPU to exercise the wrap-around.)
+STRIPES = {"cuda": 128, "cpu": 1}  # by torch device type
+STRIPE_FLOATS_W = 1 << 20  # cap of the striped d_W (4 MiB): many frames x projectors get fewer rows
+
+
+def _stripes(device: torch.device, S: int, w_floats: int) -> tuple[int, int]:
+    """(rows of the striped d_W, rows of the striped d_blur / d_sigma) for S samples on ``device``."""
+    rows = max(1, min(STRIPES.get(device.type, 1), S))
+    return max(1, min(rows, STRIPE_FLOATS_W // max(w_floats, 1))), rows
+
+
+def _striped(need: bool, rows: int, size: int, device) -> torch.Tensor:
+    """Zeroed [rows, size] float32 accumulator, or a [1, 1] dummy the kernel never touches."""
+    return torch.zeros((rows, size) if need else (1, 1), dtype=torch.float32, device=device)
+
+
+def _unstripe(buf: torch.Tensor, like: torch.Tensor) -> torch.Tensor:
+    """Sum of the stripes of ``buf`` [rows, numel] shaped as ``like``."""
+    return (buf[0] if buf.shape[0] == 1 else buf.sum(0)).view(like.shape)
+
+
 class _ProjectPattern(torch.autograd.Function):
     @staticmethod
     def forward(ctx, pos, proj_W, blur, sigma, ray_index, offsets, counts, ray_frame, proj_K, proj_pattern, pat_buf,
@@ -271,31 +292,36 @@ class _ProjectPattern(torch.autograd.Function):
                                        _wp(proj_W, mat34), _wp(proj_pattern), _wp(pat_buf), _wp(pat_meta, wp.vec3i),
                                        _wp(blur), int(n), _wp(port), _wp(sigma.view(1, 3), wp.vec3), int(use_att)],
                      pos, outputs=[_wp(out, wp.vec3)])
-        ctx.save_for_backward(pos, proj_W, blur, sigma, offsets, counts, ray_frame, proj_K, proj_pattern, pat_buf,
+        ctx.save_for_backward(pos, proj_W, blur, sigma, ray_index, ray_frame, proj_K, proj_pattern, pat_buf,
                               pat_meta, port)
         ctx.n, ctx.use_att = int(n), int(use_att)
         return out
 
     @staticmethod
     def backward(ctx, g_q):
-        pos, proj_W, blur, sigma, offsets, counts, ray_frame, proj_K, proj_pattern, pat_buf, pat_meta, port = \
+        pos, proj_W, blur, sigma, ray_index, ray_frame, proj_K, proj_pattern, pat_buf, pat_meta, port = \
             ctx.saved_tensors
         need = ctx.needs_input_grad[:4]
         if not any(need):
             return (None,) * 15
         dev = pos.device
-        d_pos = torch.zeros_like(pos) if need[0] else torch.zeros((1, 3), device=dev)
-        d_W = torch.zeros_like(proj_W) if need[1] else torch.zeros((1,), device=dev)
-        d_blur = torch.zeros_like(blur) if need[2] else torch.zeros((1,), device=dev)
-        d_sigma = torch.zeros(3, device=dev)
-        _warp.launch(_project_bwd, offsets.shape[0],
-                     [_wp(pos, wp.vec3), _wp(offsets), _wp(counts), _wp(ray_frame), _wp(proj_K, wp.mat33),
-                      _wp(proj_W, mat34), _wp(proj_pattern), _wp(pat_buf), _wp(pat_meta, wp.vec3i), _wp(blur),
-                      ctx.n, _wp(port), _wp(sigma.view(1, 3), wp.vec3), ctx.use_att, _wp(_f32(g_q), wp.vec3),
-                      int(need[0]), int(need[1]), int(need[2]), int(need[3] and ctx.use_att)],
-                     pos, outputs=[_wp(d_pos, wp.vec3), _wp(d_W.view(-1)), _wp(d_blur.view(-1)), _wp(d_sigma)])
-        return (d_pos if need[0] else None, d_W if need[1] else None, d_blur if need[2] else None,
-                d_sigma if need[3] else None) + (None,) * 11
+        S, (F, P) = pos.shape[0], proj_W.shape[:2]
+        need_sigma = bool(need[3] and ctx.use_att)
+        sW, sB = _stripes(dev, S, F * P * 12)
+        d_pos = torch.empty_like(pos) if need[0] else torch.zeros((1, 3), device=dev)  # every row is written
+        d_W = _striped(need[1], sW, proj_W.numel(), dev)
+        d_blur = _striped(need[2], sB, blur.numel(), dev)
+        d_sigma = _striped(need_sigma, sB, 3, dev)
+        _warp.launch(_project_bwd, S,
+                     [_wp(pos, wp.vec3), _wp(ray_index), _wp(ray_frame), _wp(proj_K, wp.mat33), _wp(proj_W, mat34),
+                      _wp(proj_pattern), _wp(pat_buf), _wp(pat_meta, wp.vec3i), _wp(blur), ctx.n, _wp(port),
+                      _wp(sigma.view(1, 3), wp.vec3), ctx.use_att, _wp(_f32(g_q), wp.vec3),
+                      int(need[0]), int(need[1]), int(need[2]), int(need_sigma), sW, sB],
+                     pos, outputs=[_wp(d_pos, wp.vec3), _wp(d_W), _wp(d_blur), _wp(d_sigma)])
+        return (d_pos if need[0] else None, _unstripe(d_W, proj_W) if need[1] else None,
+                _unstripe(d_blur, blur) if need[2] else None,
+                (_unstripe(d_sigma, sigma) if need_sigma else torch.zeros_like(sigma)) if need[3] else None) \
+            + (None,) * 11
 
 
 def _port_or_none(port, P, device):
@@ -482,39 +508,32 @@ def _laser_fwd(pos: wp.array(dtype=wp.vec3), ray_index: wp.array(dtype=wp.int32)
 
 
 @wp.kernel
-def _laser_bwd(pos: wp.array(dtype=wp.vec3), offsets: wp.array(dtype=wp.int32), counts: wp.array(dtype=wp.int32),
-               ray_frame: wp.array(dtype=wp.int32), W: wp.array2d(dtype=mat34), laser_on: wp.array2d(dtype=wp.int32),
-               planes: wp.array3d(dtype=float), g_q: wp.array(dtype=wp.vec3), need_pos: int, need_W: int,
-               d_pos: wp.array(dtype=wp.vec3), d_W: wp.array(dtype=float)):
-    r = wp.tid()
-    start = offsets[r]
-    cnt = counts[r]
-    if cnt == 0:
-        return
-    f = ray_frame[r]
+def _laser_bwd(pos: wp.array(dtype=wp.vec3), ray_index: wp.array(dtype=wp.int32), ray_frame: wp.array(dtype=wp.int32),
+               W: wp.array2d(dtype=mat34), laser_on: wp.array2d(dtype=wp.int32), planes: wp.array3d(dtype=float),
+               g_q: wp.array(dtype=wp.vec3), need_pos: int, need_W: int, stripes_W: int,
+               d_pos: wp.array(dtype=wp.vec3), d_W: wp.array2d(dtype=float)):
+    # One thread per sample; d_W striped as in _project_bwd.
+    i = wp.tid()
+    f = ray_frame[ray_index[i]]
+    sW = i % stripes_W
     P = laser_on.shape[1]
+    p = pos[i]
+    ph = wp.vec4(p[0], p[1], p[2], 1.0)
+    gq = g_q[i]
+    gp = wp.vec3(0.0)
     for k in range(P):
         if laser_on[f, k] != 0:
             Wf = W[f, k]
-            accW = wp.vec4(0.0)
-            accW1 = wp.vec4(0.0)
-            accW2 = wp.vec4(0.0)
-            for i in range(start, start + cnt):
-                p = pos[i]
-                X = _transform(Wf, p)
-                gq = g_q[i]
-                gX = wp.vec3(0.0)
-                for l in range(planes.shape[1]):
-                    g, dg = _laser_plane(planes, k, l, X)
-                    gX += wp.dot(gq, wp.vec3(planes[k, l, 8], planes[k, l, 9], planes[k, l, 10])) * dg
-                if need_pos != 0:
-                    d_pos[i] = d_pos[i] + _transform_vjp(Wf, gX)
-                ph = wp.vec4(p[0], p[1], p[2], 1.0)
-                accW += gX[0] * ph
-                accW1 += gX[1] * ph
-                accW2 += gX[2] * ph
-            if need_W != 0:
-                _scatter_dW(d_W, (f * P + k) * 12, accW, accW1, accW2)
+            X = _transform(Wf, p)
+            gX = wp.vec3(0.0)
+            for l in range(planes.shape[1]):
+                g, dg = _laser_plane(planes, k, l, X)
+                gX += wp.dot(gq, wp.vec3(planes[k, l, 8], planes[k, l, 9], planes[k, l, 10])) * dg
+            gp += _transform_vjp(Wf, gX)
+            if need_W != 0 and (gX[0] != 0.0 or gX[1] != 0.0 or gX[2] != 0.0):
+                _scatter_dW(d_W, sW, (f * P + k) * 12, gX, ph)
+    if need_pos != 0:
+        d_pos[i] = gp
 
 
 def _check_laser(pos, proj_W, laser_on, planes) -> None:
@@ -534,23 +553,25 @@ class _LaserLight(torch.autograd.Function):
         _warp.launch(_laser_fwd, pos.shape[0], [_wp(pos, wp.vec3), _wp(ray_index), _wp(ray_frame),
                                                 _wp(proj_W, mat34), _wp(laser_on), _wp(planes)],
                      pos, outputs=[_wp(out, wp.vec3)])
-        ctx.save_for_backward(pos, proj_W, offsets, counts, ray_frame, laser_on, planes)
+        ctx.save_for_backward(pos, proj_W, ray_index, ray_frame, laser_on, planes)
         return out
 
     @staticmethod
     def backward(ctx, g_q):
-        pos, proj_W, offsets, counts, ray_frame, laser_on, planes = ctx.saved_tensors
+        pos, proj_W, ray_index, ray_frame, laser_on, planes = ctx.saved_tensors
         need = ctx.needs_input_grad[:2]
         if not any(need):
             return (None,) * 8
         dev = pos.device
-        d_pos = torch.zeros_like(pos) if need[0] else torch.zeros((1, 3), device=dev)
-        d_W = torch.zeros_like(proj_W) if need[1] else torch.zeros((1,), device=dev)
-        _warp.launch(_laser_bwd, offsets.shape[0],
-                     [_wp(pos, wp.vec3), _wp(offsets), _wp(counts), _wp(ray_frame), _wp(proj_W, mat34),
-                      _wp(laser_on), _wp(planes), _wp(_f32(g_q), wp.vec3), int(need[0]), int(need[1])],
-                     pos, outputs=[_wp(d_pos, wp.vec3), _wp(d_W.view(-1))])
-        return (d_pos if need[0] else None, d_W if need[1] else None) + (None,) * 6
+        S, (F, P) = pos.shape[0], proj_W.shape[:2]
+        sW, _ = _stripes(dev, S, F * P * 12)
+        d_pos = torch.empty_like(pos) if need[0] else torch.zeros((1, 3), device=dev)  # every row is written
+        d_W = _striped(need[1], sW, proj_W.numel(), dev)
+        _warp.launch(_laser_bwd, S,
+                     [_wp(pos, wp.vec3), _wp(ray_index), _wp(ray_frame), _wp(proj_W, mat34), _wp(laser_on),
+                      _wp(planes), _wp(_f32(g_q), wp.vec3), int(need[0]), int(need[1]), sW],
+                     pos, outputs=[_wp(d_pos, wp.vec3), _wp(d_W)])
+        return (d_pos if need[0] else None, _unstripe(d_W, proj_W) if need[1] else None) + (None,) * 6
 
 
 def laser_light(
@@ -572,7 +593,7 @@ def laser_light(
         Q += rgb * inside * exp(-(n.X - d)^2 / (2 sigma^2))
 
     Differentiable in ``pos`` and ``proj_W`` (the fan edge is a hard cut, like a pattern's
-    border). Warp forward per sample, backward per ray.
+    border). Warp forward and backward per sample.
 
     Returns:
         [S, 3] float32.

@@ -79,6 +79,80 @@ def test_forward_backward_vs_twin(size, n, medium, device):
         _close(a, r, 3e-4, f"d{name} (seed {seed})")
 
 
+# ((R, F, P, max samples per ray), stripe rows, medium): no samples at all, one sample, and
+# ~2-5 k samples over a few (frame, projector) pairs, so every row is hit many times over
+STRIPE_CASES = [((5, 2, 2, 0), 7, False), ((1, 2, 3, 1), 7, True), ((300, 2, 3, 40), 1, False),
+                ((300, 2, 3, 40), 7, False), ((300, 2, 3, 40), 61, False), ((150, 1, 2, 70), 61, True),
+                ((200, 2, 2, 30), 7, True)]
+
+
+@pytest.mark.parametrize("device", DEVICES)
+@pytest.mark.parametrize("size,stripes,medium", STRIPE_CASES,
+                         ids=lambda c: "R{}F{}P{}m{}".format(*c) if isinstance(c, tuple) else str(c))
+def test_striped_gradients_vs_twin(size, stripes, medium, device, monkeypatch):
+    """The per-sample backward's striped d_W / d_blur / d_sigma sums equal the float64 twin's
+    gradients, whatever the row count: rows wrap many times, the sample count is not a
+    multiple of it, d_W has fewer rows than d_blur, and rays without samples are interleaved."""
+    from fastneus.kernels import project
+
+    R, F, P, m = size
+    monkeypatch.setattr(project, "STRIPES", {"cpu": stripes, "cuda": stripes})
+    monkeypatch.setattr(project, "STRIPE_FLOATS_W", F * P * 12 * 3)  # d_W: at most 3 rows
+    for _ in range(50):
+        seed = _seed()
+        inp = make_inputs(R, F, P, m, seed, device=device)
+        S = inp["pos"].shape[0]
+        if S <= 1 or stripes == 1 or S % stripes != 0:
+            break
+    assert S <= 1 or stripes == 1 or S % stripes != 0, f"seed {seed}"
+    if R > 3 and m > 0:
+        assert int((inp["counts"][1:-1] == 0).sum()) > 0  # empty rays between non-empty ones
+    gen = torch.Generator().manual_seed(seed)
+    blur = _blur(P, 3, gen).to(device)
+    port, sigma = _medium(P, gen, device) if medium else (None, None)
+    if medium:
+        _avoid_cell_edges(inp, port, 3)
+    pos = inp["pos"].clone().requires_grad_(True)
+    W = inp["proj_W"].clone().requires_grad_(True)
+    b = blur.clone().requires_grad_(True)
+    sg = None if sigma is None else sigma.clone().requires_grad_(True)
+    q = project_pattern(**_pargs(inp, pos=pos, proj_W=W), blur=b, port=port, sigma=sg)
+    pos64 = inp["pos"].double().requires_grad_(True)
+    W64 = inp["proj_W"].double().requires_grad_(True)
+    b64 = blur.double().requires_grad_(True)
+    sg64 = None if sigma is None else sigma.double().requires_grad_(True)
+    q64 = project_pattern_torch(**_pargs(inp, pos=pos64, proj_W=W64), blur=b64,
+                                port=None if port is None else port.double(), sigma=sg64)
+    _close(q, q64, 1e-5, f"q (seed {seed})")
+    if S > 50:
+        assert q.abs().max() > 0  # some samples are lit
+    up = torch.randn(q.shape, generator=gen, dtype=torch.float64).to(device)
+    ins_a = [pos, W, b] + ([sg] if medium else [])
+    ins_b = [pos64, W64, b64] + ([sg64] if medium else [])
+    ga = torch.autograd.grad((q * up.float()).sum(), ins_a, allow_unused=True)
+    gb = torch.autograd.grad((q64 * up).sum(), ins_b, allow_unused=True)
+    for name, a, r in zip(("pos", "proj_W", "blur", "sigma"), ga, gb):
+        a = torch.zeros_like(r) if a is None else a
+        r = torch.zeros_like(a) if r is None else r
+        assert a.shape == r.shape and a.dtype == torch.float32, f"d{name} (seed {seed})"
+        _close(a, r, 3e-4, f"d{name}, {stripes} stripes, S={S} (seed {seed})")
+    if S > 50:  # the shared gradients are not trivially zero
+        assert ga[1].abs().max() > 0 and ga[2].abs().max() > 0, f"seed {seed}"
+
+
+def test_stripe_rows():
+    """CUDA gets many rows, capped by the d_W budget and the sample count; CPU one."""
+    from fastneus.kernels import project
+
+    cuda, cpu = torch.device("cuda"), torch.device("cpu")
+    assert project._stripes(cpu, 10 ** 5, 48 * 12) == (1, 1)
+    assert project._stripes(cuda, 10 ** 5, 48 * 12) == (project.STRIPES["cuda"],) * 2
+    assert project._stripes(cuda, 5, 48 * 12) == (5, 5)
+    assert project._stripes(cuda, 0, 48 * 12) == (1, 1)
+    rows_w, rows_b = project._stripes(cuda, 10 ** 5, 2000 * 8 * 12)
+    assert 1 <= rows_w < rows_b and rows_w * 2000 * 8 * 12 <= project.STRIPE_FLOATS_W
+
+
 def _avoid_cell_edges(inp, port, n, margin=2e-3, min_cos=0.35):
     """Redraw sample positions whose refracted projection sits near a pixel-cell boundary, or
     whose air-side ray meets the port within acos(min_cos) ~ 70 deg of grazing.
