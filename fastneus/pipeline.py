@@ -44,25 +44,27 @@ def finish_run(trainer, console=None, eval_frames: list[int] | None = None, mesh
                                        allowed=trainer.seen)
             save_mesh(mesh, run / "mesh.ply")
             at = clock.mark("mesh_ready")
+            dt = time.perf_counter() - t
     finally:
         if save_checkpoint:
             with clock.phase("checkpoint"):
                 trainer.save()
     say(f"mesh: {len(mesh.vertices)} vertices, {len(mesh.faces)} faces -> {run / 'mesh.ply'} "
-        f"({time.perf_counter() - t:.2f}s at {res}^3, {mesh.stats['mc']} marching cubes, "
+        f"({dt:.2f}s at {res}^3, {mesh.stats['mc']} marching cubes, "
         f"{100 * mesh.stats['points'] / mesh.stats['dense_points']:.0f}% of the grid evaluated; "
         f"{at:.1f}s after {clock.source})")
     clock.notes["mesh"] = {k: mesh.stats[k] for k in ("points", "dense_points", "cells", "mc", "coarse_s", "fine_s",
                                                      "cells_s", "mc_s", "filter_s") if k in mesh.stats}
     clock.notes["mesh"]["resolution"] = int(res)
 
-    from fastneus.export.evaluate import geometry_metrics, illumination_metrics, image_metrics, render_frames, save_renders
-    from fastneus.export.report import write_report
-    from fastneus.io import atomic_write_image
-
     frames = eval_frames if eval_frames is not None else default_eval_frames(scene, trainer.frames)
     with clock.phase("renders"):
         t = time.perf_counter()
+        from fastneus.export.evaluate import (geometry_metrics, illumination_metrics, image_metrics, render_frames,
+                                              save_renders)
+        from fastneus.export.report import write_report
+        from fastneus.io import atomic_write_image
+
         renders = render_frames(trainer, frames)
         paths = save_renders(renders, run / "renders")
         for i in frames:

@@ -158,6 +158,24 @@ def test_components_like_trimesh_split():
     assert len(kept.faces) == big and np.linalg.norm(kept.vertices - SCENE.bounds.center, axis=1).max() < 1.0
 
 
+@pytest.mark.parametrize("device", DEVICES)
+def test_torch_components_match_scipy(device):
+    from fastneus.export.mesh import component_labels, keep_large_components_torch
+
+    m = extract_mesh_arrays(Blobs(), SCENE, 48, "cpu", keep_fraction=0)
+    extra = np.array([[0, 1, 2]]) + len(m.vertices)                 # a third piece: one triangle
+    v = np.concatenate([m.vertices, np.eye(3)])
+    f = np.concatenate([m.faces, extra])
+    vt, ft = torch.from_numpy(v).to(device), torch.from_numpy(f).to(device)
+    lab = component_labels(ft, len(v))
+    assert len(torch.unique(lab)) == 3 and bool((lab <= torch.arange(len(v), device=device)).all())
+    for frac in (0.0, 1e-4, 0.02, 0.5):
+        a_v, a_f = keep_large_components(v, f, frac)
+        b_v, b_f = keep_large_components_torch(vt, ft, frac)
+        np.testing.assert_array_equal(b_f.cpu().numpy(), a_f)
+        np.testing.assert_array_equal(b_v.cpu().numpy(), a_v)
+
+
 def test_no_surface_gives_an_empty_mesh_and_a_valid_ply(tmp_path):
     class Empty:
         def sdf(self, x):

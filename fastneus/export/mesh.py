@@ -130,25 +130,28 @@ class SparseSDF:
         return int(self.grid.shape[0])
 
 
-def _allowed_box_counts(allowed: torch.Tensor, ar: int, lo: torch.Tensor, hi: torch.Tensor) -> tuple:
-    """Per block, whether any / all occupancy cells its nodes fall into are allowed.
-
-    Args:
-        allowed: [R^3] bool, index x + R y + R^2 z.
-        lo, hi: [nb] long, first and last occupancy-cell index per block along an axis.
-    Returns:
-        (any_ok [nb, nb, nb] bool, all_ok [nb, nb, nb] bool).
-    """
-    a = allowed.reshape(ar, ar, ar).permute(2, 1, 0).to(torch.int32)                  # [x, y, z]
+def _allowed_prefix(allowed: torch.Tensor, ar: int) -> torch.Tensor:
+    """3-D prefix sums of the allowed mask ([R^3] bool, index x + R y + R^2 z) -> [R+1, R+1, R+1] int32 over [x, y, z]."""
+    a = allowed.reshape(ar, ar, ar).permute(2, 1, 0).to(torch.int32)
     s = torch.zeros(ar + 1, ar + 1, ar + 1, dtype=torch.int32, device=a.device)
     s[1:, 1:, 1:] = a.cumsum(0).cumsum(1).cumsum(2)
-    x0, x1 = lo[:, None, None], hi[:, None, None] + 1
-    y0, y1 = lo[None, :, None], hi[None, :, None] + 1
-    z0, z1 = lo[None, None, :], hi[None, None, :] + 1
+    return s
+
+
+def _allowed_in_boxes(s: torch.Tensor, lo: torch.Tensor, hi: torch.Tensor) -> tuple:
+    """Whether any / all occupancy cells of each box are allowed.
+
+    Args:
+        s: prefix sums from :func:`_allowed_prefix`.
+        lo, hi: [K, 3] long, first and last occupancy cell of each box per axis (inclusive).
+    Returns:
+        (any_ok [K] bool, all_ok [K] bool).
+    """
+    x0, y0, z0 = lo.unbind(1)
+    x1, y1, z1 = (hi + 1).unbind(1)
     cnt = (s[x1, y1, z1] - s[x0, y1, z1] - s[x1, y0, z1] - s[x1, y1, z0]
            + s[x0, y0, z1] + s[x0, y1, z0] + s[x1, y0, z0] - s[x0, y0, z0])
-    vol = (x1 - x0) * (y1 - y0) * (z1 - z0)
-    return cnt > 0, cnt == vol
+    return cnt > 0, cnt == (x1 - x0) * (y1 - y0) * (z1 - z0)
 
 
 def _block_node_ids(blocks: torch.Tensor, block: int, n: int) -> torch.Tensor:
@@ -185,21 +188,22 @@ def _spill(grid: torch.Tensor, done: torch.Tensor, active: torch.Tensor, sign: t
     return torch.cat(out) if out else cand
 
 
-def _block_state(g: torch.Tensor, size: int, h: float, lipschitz: float, lin: torch.Tensor, n: int,
-                 allowed: torch.Tensor | None, ar: int) -> torch.Tensor:
+def _block_state(blocks: torch.Tensor, g: torch.Tensor, size: int, h: float, lipschitz: float, lin: torch.Tensor,
+                 n: int, prefix: torch.Tensor | None, ar: int) -> torch.Tensor:
     """Sign of blocks of ``size`` cells from their centre values: +1 / -1 (cannot hold the zero level), 0 (may).
 
     Args:
-        g: [a, b, c] centre values (no allowed-mask clamp); lin: [n] node coordinates.
+        blocks: [K, 3] long block subscripts; g: [K] their centre values (no allowed-mask clamp).
+        lin: [n] node coordinates; prefix: allowed-mask prefix sums (None: no mask).
     Returns:
-        [a, b, c] int8.
+        [K] int8.
     """
     margin = lipschitz * size * h * math.sqrt(3) / 2
     pos, neg = g > margin, g < -margin
-    if allowed is not None:
+    if prefix is not None:
+        i0 = blocks * size
         cell = lambda x: ((x + 1.0) * (0.5 * ar)).long().clamp_(0, ar - 1)  # noqa: E731 (as in _clamped_sdf)
-        i0 = torch.arange(g.shape[0], device=g.device) * size                         # the grid of blocks is cubic
-        any_ok, all_ok = _allowed_box_counts(allowed, ar, cell(lin[i0]), cell(lin[(i0 + size).clamp(max=n - 1)]))
+        any_ok, all_ok = _allowed_in_boxes(prefix, cell(lin[i0]), cell(lin[(i0 + size).clamp(max=n - 1)]))
         pos |= ~any_ok        # lifted above zero everywhere in the block
         neg &= all_ok & ~pos  # a lifted node would border the negative ones
     return pos.to(torch.int8) - neg.to(torch.int8)
@@ -250,19 +254,18 @@ def sparse_sdf(field, resolution: int, device, bound: str = "sphere", allowed: t
     size = block << levels
     nb = -(-(n - 1) // size)
     coarse_pts = nb ** 3
+    prefix = _allowed_prefix(allowed, ar) if allowed is not None else None
     allb = torch.stack(torch.meshgrid(*[torch.arange(nb, device=dev)] * 3, indexing="ij"), -1).reshape(-1, 3)
-    g = evaluate(centres(allb, size), with_allowed=False).reshape(nb, nb, nb)
-    sign = _block_state(g, size, h, lipschitz, lin, n, allowed, ar)
+    g = evaluate(centres(allb, size), with_allowed=False)
+    sign = _block_state(allb, g, size, h, lipschitz, lin, n, prefix, ar).reshape(nb, nb, nb)
     while size > block:
         size //= 2
         nb = -(-(n - 1) // size)
         sign = sign.repeat_interleave(2, 0).repeat_interleave(2, 1).repeat_interleave(2, 2)[:nb, :nb, :nb]
         kids = (sign == 0).nonzero()                                                  # children of open blocks
         coarse_pts += kids.shape[0]
-        g = torch.full((nb, nb, nb), float("nan"), device=dev)
-        g[kids[:, 0], kids[:, 1], kids[:, 2]] = evaluate(centres(kids, size), with_allowed=False)
-        st = _block_state(torch.nan_to_num(g, nan=0.0), size, h, lipschitz, lin, n, allowed, ar)
-        sign = torch.where(sign == 0, st, sign)
+        g = evaluate(centres(kids, size), with_allowed=False)
+        sign[kids[:, 0], kids[:, 1], kids[:, 2]] = _block_state(kids, g, size, h, lipschitz, lin, n, prefix, ar)
     active = sign == 0
     # two touching blocks given opposite signs: the zero level runs between them, whatever the bound said
     for ax in range(3):
@@ -382,6 +385,54 @@ def keep_large_components(vertices: np.ndarray, faces: np.ndarray, keep_fraction
     return vertices[used], remap[faces]
 
 
+def component_labels(faces: torch.Tensor, n_vertices: int, max_iter: int = 10_000) -> torch.Tensor:
+    """Connected-component label of each vertex (the smallest vertex id of its component), in torch.
+
+    Min-label propagation with hooking of the labels themselves and pointer jumping (as in
+    FastSV): a few iterations for a mesh; meant for the GPU (on a CPU scipy is much faster).
+
+    Args:
+        faces: [F, 3] long; n_vertices: V.
+    Returns:
+        [V] long.
+    """
+    a = torch.cat([faces[:, 0], faces[:, 1]])
+    b = torch.cat([faces[:, 1], faces[:, 2]])
+    lab = torch.arange(n_vertices, device=faces.device)
+    for _ in range(max_iter):
+        la, lb = lab[a], lab[b]
+        m = torch.minimum(la, lb)
+        new = lab.clone()
+        for idx in (a, b, la, lb):
+            new.scatter_reduce_(0, idx, m, "amin")
+        new = new[new]
+        new = new[new]
+        if torch.equal(new, lab):
+            return lab
+        lab = new
+    raise RuntimeError("connected components did not converge")  # cannot happen: labels only decrease
+
+
+def keep_large_components_torch(vertices: torch.Tensor, faces: torch.Tensor, keep_fraction: float) -> tuple:
+    """:func:`keep_large_components` on torch tensors (on the GPU: no host round trip, no scipy).
+
+    Args:
+        vertices: [V, 3]; faces: [F, 3] long.
+    Returns:
+        (vertices [V', 3], faces [F', 3] long), the same arrays as the numpy version.
+    """
+    if keep_fraction <= 0 or faces.shape[0] == 0:
+        return vertices, faces
+    nv = vertices.shape[0]
+    fl = component_labels(faces, nv)[faces[:, 0]]
+    size = torch.bincount(fl, minlength=nv)
+    faces = faces[size[fl] >= keep_fraction * size.max()]
+    used = torch.zeros(nv, dtype=torch.bool, device=faces.device)
+    used[faces.reshape(-1)] = True
+    remap = torch.cumsum(used, 0) - 1
+    return vertices[used], remap[faces]
+
+
 def _to_world(verts: np.ndarray, faces: np.ndarray, center, radius: float, keep_fraction: float) -> tuple:
     v = np.asarray(verts, dtype=np.float64) * float(radius) + np.asarray(center, dtype=np.float64)[None]
     return keep_large_components(v, faces, keep_fraction)
@@ -440,10 +491,14 @@ def extract_mesh_arrays(field, scene, resolution: int, device, bound: str = "sph
     t = time.perf_counter()
     op = get_op("marching_cubes", "warp" if use_warp else "torch")
     v, f = op(sp.grid, cells, origin=-1.0, spacing=2.0 / (resolution - 1))
-    v, f = v.cpu().numpy(), f.cpu().numpy()
+    _sync(dev)
     t_mc = time.perf_counter() - t
     t = time.perf_counter()
-    verts, faces = _to_world(v, f, scene.bounds.center, float(scene.bounds.radius), keep_fraction)
+    if v.device.type == "cuda":  # floaters dropped on the GPU (~ms), then one copy to the host
+        v, f = keep_large_components_torch(v, f, keep_fraction)
+        keep_fraction = 0.0
+    verts, faces = _to_world(v.cpu().numpy(), f.cpu().numpy(), scene.bounds.center, float(scene.bounds.radius),
+                             keep_fraction)
     stats = dict(sp.stats, cells=int(cells.shape[0]), mc="warp" if use_warp else "skimage",
                  cells_s=round(t_cells, 4), mc_s=round(t_mc, 4), filter_s=round(time.perf_counter() - t, 4),
                  total_s=round(time.perf_counter() - t0, 4))
