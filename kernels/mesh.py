@@ -35,8 +35,14 @@ _CORNERS = ((0, 0, 0), (1, 0, 0), (1, 1, 0), (0, 1, 0), (0, 0, 1), (1, 0, 1), (1
 
 
 def warp_modules() -> list:
-    """The Python modules holding the Warp kernels this op launches (for ``load_modules``)."""
-    return [sys.modules[wp.geometry.sparse_marching_cubes_from_cells.__module__]]
+    """The Warp modules (``warp.Module``) of the kernels this op launches, for ``load_modules``.
+
+    Found from the kernels defined next to ``sparse_marching_cubes_from_cells`` (Warp names
+    that module ``warp.geometry.sparse_marching_cubes``, not after its Python module).
+    """
+    pm = sys.modules[wp.geometry.sparse_marching_cubes_from_cells.__module__]
+    mods = {id(k.module): k.module for k in vars(pm).values() if isinstance(k, wp.Kernel)}
+    return list(mods.values())
 
 
 def _check(grid: torch.Tensor, cells: torch.Tensor, spacing: float) -> None:

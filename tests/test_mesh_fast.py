@@ -251,3 +251,15 @@ def test_surface_cells_are_the_sign_changes():
 def test_mesh_arrays_to_trimesh_keeps_arrays():
     m = MeshArrays(np.zeros((3, 3)), np.array([[0, 1, 2]]))
     assert len(m.to_trimesh().faces) == 1
+
+
+def test_marching_cubes_kernels_can_be_preloaded():
+    """prime() loads Warp's marching-cubes module on CUDA before training: the op names it."""
+    from fastneus.kernels import prepare_kernels
+    from fastneus.kernels.mesh import warp_modules
+
+    mods = warp_modules()
+    assert mods and all("sparse_marching_cubes" in m.name for m in mods)
+    rep: dict = {}
+    s = prepare_kernels("cpu", ops=("marching_cubes",), report=rep)
+    assert s >= 0 and isinstance(rep["compiled"], list)
