@@ -8,8 +8,6 @@ import sys
 import time
 from pathlib import Path
 
-import pytest
-
 from fastneus import timing
 
 ROOT = Path(__file__).resolve().parents[1]

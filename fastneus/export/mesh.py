@@ -131,7 +131,13 @@ class SparseSDF:
 
 
 def _allowed_prefix(allowed: torch.Tensor, ar: int) -> torch.Tensor:
-    """3-D prefix sums of the allowed mask ([R^3] bool, index x + R y + R^2 z) -> [R+1, R+1, R+1] int32 over [x, y, z]."""
+    """3-D prefix sums of the allowed mask.
+
+    Args:
+        allowed: [R^3] bool, index x + R y + R^2 z.
+    Returns:
+        [R+1, R+1, R+1] int32 indexed [x, y, z]; s[i, j, k] counts allowed cells below (i, j, k).
+    """
     a = allowed.reshape(ar, ar, ar).permute(2, 1, 0).to(torch.int32)
     s = torch.zeros(ar + 1, ar + 1, ar + 1, dtype=torch.int32, device=a.device)
     s[1:, 1:, 1:] = a.cumsum(0).cumsum(1).cumsum(2)
@@ -301,8 +307,9 @@ def sparse_sdf(field, resolution: int, device, bound: str = "sphere", allowed: t
         todo = _spill(grid, done, active, sign, block, per)
         active[todo[:, 0], todo[:, 1], todo[:, 2]] = True
     _sync(dev)
-    stats = {"points": evaluated + coarse_pts, "coarse_points": coarse_pts, "dense_points": n ** 3, "blocks_active": int(active.sum()),
-             "blocks": nb ** 3, "block": block, "rounds": rounds, "spill_left": int(todo.shape[0]),
+    stats = {"points": evaluated + coarse_pts, "coarse_points": coarse_pts, "dense_points": n ** 3,
+             "blocks_active": int(active.sum()), "blocks": nb ** 3, "block": block, "rounds": rounds,
+             "spill_left": int(todo.shape[0]),
              "coarse_s": round(t_coarse, 4), "fine_s": round(time.perf_counter() - t, 4)}
     return SparseSDF(grid.reshape(n, n, n), active, block, stats)
 
