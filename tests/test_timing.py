@@ -110,3 +110,5 @@ def test_cli_train_times_each_phase_from_process_start(small_scene, tmp_path):
     renders = sorted((run / "renders").glob("*.png"))
     assert renders and (run / "mesh.ply").stat().st_mtime <= min(p.stat().st_mtime for p in renders)
     assert (run / "checkpoint.pt").is_file()
+    page = (run / "report.html").read_text()
+    assert "Wall clock (seconds from process start)" in page and "mesh_ready_at" in page and "{&#x27;" not in page
