@@ -76,6 +76,20 @@ def test_sparse_evaluation_gives_the_dense_mesh(field, res):
     assert st["points"] < st["dense_points"] and st["cells"] > 0 and st["mc"] == "skimage"
 
 
+def test_sparse_evaluation_at_the_grid_edge():
+    """An odd resolution (the last blocks are cut by the grid's edge) and a surface leaving the box."""
+    class Corner:
+        def sdf(self, x):
+            return (x - 0.8).norm(dim=-1) - (0.35 + EPS)
+
+    sc = SimpleNamespace(bounds=SimpleNamespace(center=np.zeros(3), radius=1.0))
+    for res in (66, 51):
+        dense = mesh_from_grid(sdf_grid(Corner(), res, "cpu", bound="box"), np.zeros(3), 1.0, keep_fraction=0)
+        sparse = extract_mesh_arrays(Corner(), sc, res, "cpu", bound="box", mc="skimage", keep_fraction=0)
+        assert len(sparse.faces) == len(dense.faces) > 50
+        _assert_same_points(sparse.vertices, np.asarray(dense.vertices), 1e-5)
+
+
 def test_sparse_evaluation_follows_a_steep_field():
     """|grad| = 20 breaks the assumed bound (2): blocks given opposite signs and neighbour activation
     still find the whole surface (a piece smaller than a block could be missed: not tested)."""

@@ -204,12 +204,13 @@ def _block_state(blocks: torch.Tensor, g: torch.Tensor, size: int, h: float, lip
     Returns:
         [K] int8.
     """
-    margin = lipschitz * size * h * math.sqrt(3) / 2
+    i0 = blocks * size
+    i1 = (i0 + size).clamp(max=n - 1)                      # a last block may be cut by the grid's edge
+    margin = lipschitz * h * 0.5 * (i1 - i0).double().norm(dim=1).float()   # [K] lipschitz x half-diagonal
     pos, neg = g > margin, g < -margin
     if prefix is not None:
-        i0 = blocks * size
         cell = lambda x: ((x + 1.0) * (0.5 * ar)).long().clamp_(0, ar - 1)  # noqa: E731 (as in _clamped_sdf)
-        any_ok, all_ok = _allowed_in_boxes(prefix, cell(lin[i0]), cell(lin[(i0 + size).clamp(max=n - 1)]))
+        any_ok, all_ok = _allowed_in_boxes(prefix, cell(lin[i0]), cell(lin[i1]))
         pos |= ~any_ok        # lifted above zero everywhere in the block
         neg &= all_ok & ~pos  # a lifted node would border the negative ones
     return pos.to(torch.int8) - neg.to(torch.int8)
@@ -222,7 +223,8 @@ def sparse_sdf(field, resolution: int, device, bound: str = "sphere", allowed: t
 
     Blocks are found top-down (a Lipschitz octree): blocks of ``block * 2^k`` cells, starting
     with ~8 per axis, are split into 8 children wherever their centre value is within
-    ``lipschitz`` x half-diagonal of zero, down to ``block`` cells.
+    ``lipschitz`` x half-diagonal of zero, down to ``block`` cells (blocks cut by the grid's edge
+    use their own centre and half-diagonal).
 
     Args:
         field: object with ``sdf(x [M, 3]) -> [M]`` in normalised units.
@@ -249,8 +251,9 @@ def sparse_sdf(field, resolution: int, device, bound: str = "sphere", allowed: t
         return torch.cat([_clamped_sdf(field, pts[i:i + chunk], bound, allowed if with_allowed else None, ar)
                           for i in range(0, pts.shape[0], chunk)]) if pts.shape[0] else pts[:, 0]
 
-    def centres(blocks: torch.Tensor, size: int) -> torch.Tensor:  # [K, 3] long -> [K, 3] float32
-        return (-1.0 + (blocks.double() * size + size / 2) * h).float()
+    def centres(blocks: torch.Tensor, size: int) -> torch.Tensor:  # [K, 3] long -> [K, 3] float32, inside the grid
+        i0 = blocks * size
+        return (-1.0 + (i0 + (i0 + size).clamp(max=n - 1)).double() * (0.5 * h)).float()
 
     # 1. coarse passes, top-down: sign [nb, nb, nb] int8 per level, 0 = may hold the surface
     t = time.perf_counter()
