@@ -26,12 +26,11 @@ def run_demo(out: Path, device: str, overrides: list[str] | None = None, console
     from fastneus.config import load_config
     from fastneus.data import Scene
     from fastneus.io import check_out_dir
+    from fastneus import timing
     from fastneus.pipeline import train_scene
     from fastneus.synth import synthesize
 
-    from fastneus import timing
-
-    clock = timing.take_clock()
+    clock = timing.take_clock()  # from the process start (fastneus.cli)
     con = console or Console()
     check_out_dir(out)
     kind = "cuda" if device.startswith("cuda") else "cpu"

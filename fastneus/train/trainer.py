@@ -133,6 +133,7 @@ class Trainer:
         self.gen = torch.Generator(device=self.device)
         self.gen.manual_seed(cfg.seed)
         self.stop_signal: str | None = None  # set by interrupt.stop_on_signal: stop after this step
+        self.clock = None  # fastneus.timing.RunClock of the run (pipeline.train_scene): fit() records its phases
 
     # ------------------------------------------------------------------ helpers
     def illumination(self) -> tuple[torch.Tensor, torch.Tensor]:
@@ -334,7 +335,7 @@ class Trainer:
             t_save -= time.perf_counter()
             self.save()
             t_save += time.perf_counter()
-        clock = getattr(self, "clock", None)  # fastneus.timing.RunClock set by pipeline.train_scene
+        clock = self.clock
         if clock is not None:
             clock.add("kernels", t_kernels)
             clock.notes["kernels_compiled"] = kern.get("compiled", [])
