@@ -6,12 +6,16 @@ raises :class:`fastneus.errors.FastneusError`, printed here as one line (exit 2)
 """
 from __future__ import annotations
 
-import argparse
-import importlib
-import os
-import sys
+from . import timing as _timing
 
-from .errors import FastneusError
+_timing.note_process_start()  # first thing: the wall clock of a run counts from here (or /proc's start)
+
+import argparse  # noqa: E402
+import importlib  # noqa: E402
+import os  # noqa: E402
+import sys  # noqa: E402
+
+from .errors import FastneusError  # noqa: E402
 
 # verb modules, in the order shown by --help
 VERB_MODULES = [
@@ -49,13 +53,26 @@ class _Parser(argparse.ArgumentParser):
         self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
 
 
-def build_parser() -> argparse.ArgumentParser:
+# verb -> the module registering it (the parser of one verb is built without importing the
+# others: ``fastneus train`` must not pay for synth's torch + trimesh + scipy imports)
+VERBS = {
+    "demo": "fastneus.demo", "synth": "fastneus.synth", "patterns": "fastneus.patterns",
+    "train": "fastneus.train.cli", "oneshot": "fastneus.train.cli",
+    "mesh": "fastneus.export.cli", "render": "fastneus.export.cli", "eval": "fastneus.export.cli",
+    "convert": "fastneus.formats.cli", "import-calib": "fastneus.formats.cli",
+}
+
+
+def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
+    """The ``fastneus`` parser; with ``argv`` naming a known verb first, only that verb's module is imported."""
     parser = _Parser(
         prog="fastneus",
         description="Fast ActiveNeuS: reconstruct surfaces from images lit by calibrated projectors.",
     )
     sub = parser.add_subparsers(dest="verb", metavar="<verb>")
-    for name in VERB_MODULES:
+    first = argv[0] if argv else None
+    names = [VERBS[first]] if first in VERBS else VERB_MODULES
+    for name in names:
         try:
             mod = importlib.import_module(name)
         except ModuleNotFoundError as e:  # a verb module not written yet must not break the others
@@ -67,7 +84,10 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = build_parser()
+    # a real command line times its run from the process start; main(argv) inside another program from now
+    _timing.begin_cli_run(from_process_start=argv is None)
+    argv = sys.argv[1:] if argv is None else list(argv)
+    parser = build_parser(argv)
     # key=value overrides may come after options (argparse would leave them unparsed)
     args, extra = parser.parse_known_args(argv)
     if extra:

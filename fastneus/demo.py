@@ -26,9 +26,11 @@ def run_demo(out: Path, device: str, overrides: list[str] | None = None, console
     from fastneus.config import load_config
     from fastneus.data import Scene
     from fastneus.io import check_out_dir
+    from fastneus import timing
     from fastneus.pipeline import train_scene
     from fastneus.synth import synthesize
 
+    clock = timing.take_clock()  # from the process start (fastneus.cli)
     con = console or Console()
     check_out_dir(out)
     kind = "cuda" if device.startswith("cuda") else "cpu"
@@ -36,25 +38,30 @@ def run_demo(out: Path, device: str, overrides: list[str] | None = None, console
     scene_dir = out / "scene"
     t = time.perf_counter()
     if (scene_dir / "scene.json").is_file():
-        scene = Scene.load(scene_dir)
+        with clock.phase("scene_load"):
+            scene = Scene.load(scene_dir)
         con.print(f"[bold]1/3 scene[/bold]: reusing {scene_dir}")
     else:
         con.print(f"[bold]1/3 scene[/bold]: synthesising the built-in 'toy' scene: {s['views']} views "
                   f"{s['size'][0]}x{s['size'][1]}, 4 cross-laser projectors, {s['illum']} illumination")
-        scene = synthesize(scene_dir, shape="toy", views=s["views"], size=s["size"], pattern="crosslaser",
-                           illum=s["illum"], seed=0, device=device, focal=s.get("focal"))
+        with clock.phase("synth"):
+            scene = synthesize(scene_dir, shape="toy", views=s["views"], size=s["size"], pattern="crosslaser",
+                               illum=s["illum"], seed=0, device=device, focal=s.get("focal"))
         con.print(f"    {scene_dir} ({time.perf_counter() - t:.1f}s); look at {scene_dir / 'contact_sheet.png'}")
     cfg = load_config(s["preset"], overrides)
     con.print(f"[bold]2/3 reconstruct[/bold]: preset {cfg.preset}, {cfg.steps} steps on {device}")
     if (out / "run").is_dir() and any((out / "run").iterdir()):
         con.print(f"    replacing the previous demo run in {out / 'run'}")
     # the demo owns its run folder: running it again replaces the previous demo run
-    _, metrics = train_scene(scene, cfg, out / "run", device, console=con, overwrite=True)
+    _, metrics = train_scene(scene, cfg, out / "run", device, console=con, overwrite=True, clock=clock)
     con.print("[bold]3/3 results[/bold]")
     for k in ("chamfer_gt2rec_mm", "chamfer_gt2rec_filtered_mm", "fscore", "psnr_pattern", "psnr_texture",
               "depth_mae_mm", "i_r", "i_b", "train_seconds"):
         if k in metrics:
             con.print(f"    {k:28s} {metrics[k]:.4g}")
+    from fastneus.pipeline import print_run_summary
+
+    print_run_summary(metrics, con)
     con.print(f"mesh:   {out / 'run' / 'mesh.ply'}")
     con.print(f"report: {out / 'run' / 'report.html'}")
     return metrics

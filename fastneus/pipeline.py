@@ -1,4 +1,4 @@
-"""A whole run: train -> mesh -> renders -> metrics -> illumination -> report."""
+"""A whole run: train -> mesh -> renders -> metrics -> illumination -> report, each phase timed."""
 from __future__ import annotations
 
 import time
@@ -19,72 +19,158 @@ def default_eval_frames(scene, train_frames: list[int], limit: int = 3) -> list[
     return picks
 
 
-def finish_run(trainer, console=None, eval_frames: list[int] | None = None, mesh_resolution: int | None = None) -> dict:
-    """Mesh, renders, metrics, illumination.json and report.html for a trained ``trainer``."""
-    from fastneus.export.evaluate import geometry_metrics, illumination_metrics, image_metrics, render_frames, save_renders
-    from fastneus.export.mesh import extract_mesh, save_mesh
-    from fastneus.export.report import write_report
+def finish_run(trainer, console=None, eval_frames: list[int] | None = None, mesh_resolution: int | None = None,
+               clock=None, save_checkpoint: bool = False) -> dict:
+    """Mesh, renders, metrics, illumination.json and report.html for a trained ``trainer``.
 
+    mesh.ply is written first and nothing heavy runs before it (the evaluation modules,
+    trimesh and the ground truth are loaded after). Each phase is timed on ``clock`` (default:
+    the trainer's, else the CLI's, else a new one); metrics.json and run.json get ``timing``
+    (seconds per phase, ``mesh_ready_at`` and ``total`` from the clock's origin, the process
+    start for a CLI run) and the peak host / GPU memory. ``save_checkpoint``: write the
+    trainer's checkpoint right after mesh.ply (also if meshing fails).
+    """
+    from fastneus import timing
+    from fastneus.export.mesh import extract_mesh_arrays, save_mesh
+
+    clock = clock or getattr(trainer, "clock", None) or timing.take_clock()
     say = console.print if console is not None else (lambda *a, **k: None)
     run, scene, cfg = trainer.out, trainer.scene, trainer.cfg
-    t = time.perf_counter()
-    res = mesh_resolution or cfg.mesh_resolution
-    mesh = extract_mesh(trainer.field, scene, res, trainer.device, bound=cfg.bound, allowed=trainer.seen)
-    save_mesh(mesh, run / "mesh.ply")
+    try:
+        with clock.phase("mesh"):
+            t = time.perf_counter()
+            res = mesh_resolution or cfg.mesh_resolution
+            mesh = extract_mesh_arrays(trainer.field, scene, res, trainer.device, bound=cfg.bound,
+                                       allowed=trainer.seen)
+            save_mesh(mesh, run / "mesh.ply")
+            at = clock.mark("mesh_ready")
+            dt = time.perf_counter() - t
+    finally:
+        if save_checkpoint:
+            with clock.phase("checkpoint"):
+                trainer.save()
     say(f"mesh: {len(mesh.vertices)} vertices, {len(mesh.faces)} faces -> {run / 'mesh.ply'} "
-        f"({time.perf_counter() - t:.1f}s)")
+        f"({dt:.2f}s at {res}^3, {mesh.stats['mc']} marching cubes, "
+        f"{100 * mesh.stats['points'] / mesh.stats['dense_points']:.0f}% of the grid evaluated; "
+        f"{at:.1f}s after {clock.source})")
+    clock.notes["mesh"] = {k: mesh.stats[k] for k in ("points", "dense_points", "cells", "mc", "coarse_s", "fine_s",
+                                                     "cells_s", "mc_s", "filter_s") if k in mesh.stats}
+    clock.notes["mesh"]["resolution"] = int(res)
+
     frames = eval_frames if eval_frames is not None else default_eval_frames(scene, trainer.frames)
-    t = time.perf_counter()
-    renders = render_frames(trainer, frames)
-    paths = save_renders(renders, run / "renders")
-    from fastneus.io import atomic_write_image
+    with clock.phase("renders"):
+        t = time.perf_counter()
+        from fastneus.export.evaluate import (geometry_metrics, illumination_metrics, image_metrics, render_frames,
+                                              save_renders)
+        from fastneus.export.report import write_report
+        from fastneus.io import atomic_write_image
 
-    for i in frames:
-        clean = scene.gt_clean(i)  # read once: it is a full-size PNG
-        if clean is not None:
-            atomic_write_image(run / "renders" / f"{i:03d}_clean.png", clean)
-            paths[i]["clean"] = f"renders/{i:03d}_clean.png"
+        renders = render_frames(trainer, frames)
+        paths = save_renders(renders, run / "renders")
+        for i in frames:
+            clean = scene.gt_clean(i)  # read once: it is a full-size PNG
+            if clean is not None:
+                atomic_write_image(run / "renders" / f"{i:03d}_clean.png", clean)
+                paths[i]["clean"] = f"renders/{i:03d}_clean.png"
     say(f"renders of frames {frames} -> {run / 'renders'} ({time.perf_counter() - t:.1f}s)")
-    metrics: dict = {"steps": trainer.step, "train_seconds": round(trainer.elapsed, 2),
-                     "train_frames": len(trainer.frames), "skipped_steps": trainer.skipped,
-                     "masks_used": bool(trainer.masks_used), "bg_prior_used": bool(trainer.bg_used)}
-    metrics.update(illumination_metrics(trainer))
-    metrics.update(geometry_metrics(mesh, scene, trainer.frames))
-    from fastneus.export.depth import view_depth_metrics
+    with clock.phase("eval"):
+        from fastneus.export.depth import view_depth_metrics
 
-    metrics.update(view_depth_metrics(mesh, scene, trainer.frames, trainer.device))  # visible-surface depth error
-    metrics.update(image_metrics(scene, renders))
+        tm = mesh.to_trimesh()
+        metrics: dict = {"steps": trainer.step, "train_seconds": round(trainer.elapsed, 2),
+                         "train_frames": len(trainer.frames), "skipped_steps": trainer.skipped,
+                         "masks_used": bool(trainer.masks_used), "bg_prior_used": bool(trainer.bg_used)}
+        metrics.update(illumination_metrics(trainer))
+        metrics.update(geometry_metrics(tm, scene, trainer.frames))
+        metrics.update(view_depth_metrics(tm, scene, trainer.frames, trainer.device))  # visible-surface depth error
+        metrics.update(image_metrics(scene, renders))
+        metrics.update(timing.peak_memory(trainer.device))
+        metrics["timing"] = clock.summary()
+        atomic_write_json(run / "metrics.json", metrics)
+        ill = {k: metrics[k] for k in ("i_r", "i_b", "i_r_gt", "i_b_gt", "i_r_err", "i_b_err") if k in metrics}
+        atomic_write_json(run / "illumination.json", ill)
+    with clock.phase("report"):
+        write_report(run, metrics, paths, cfg.to_dict(), title=f"fastneus: {scene.name or scene.root.name}")
+    # the final word on time and memory: every phase done
+    metrics.update(timing.peak_memory(trainer.device))
+    metrics["timing"] = clock.summary()
     atomic_write_json(run / "metrics.json", metrics)
-    ill = {k: metrics[k] for k in ("i_r", "i_b", "i_r_gt", "i_b_gt", "i_r_err", "i_b_err") if k in metrics}
-    atomic_write_json(run / "illumination.json", ill)
-    write_report(run, metrics, paths, cfg.to_dict(), title=f"fastneus: {scene.name or scene.root.name}")
+    _update_run_json(run, {"timing": metrics["timing"],
+                           **{k: v for k, v in metrics.items() if k.startswith("peak_")}})
     return metrics
 
 
+def _update_run_json(run: Path, extra: dict) -> None:
+    """Merge ``extra`` into run.json (created if missing or unreadable)."""
+    import json
+
+    path = Path(run) / "run.json"
+    try:
+        data = json.loads(path.read_text()) if path.is_file() else {}
+        if not isinstance(data, dict):
+            data = {}
+    except (OSError, ValueError):
+        data = {}
+    data.update(extra)
+    atomic_write_json(path, data)
+
+
+def print_run_summary(metrics: dict, console) -> None:
+    """One line of time-to-mesh, total and peak memory, then the per-phase table."""
+    from fastneus import timing
+
+    tm = metrics.get("timing") or {}
+    if not tm:
+        return
+    mem = f"peak RSS {metrics['peak_rss_mb']:.0f} MB" if "peak_rss_mb" in metrics else ""
+    if "peak_gpu_mb" in metrics:
+        mem += (f", peak GPU {metrics['peak_gpu_mb']:.0f} MB (torch {metrics['peak_gpu_torch_mb']:.0f}, "
+                f"Warp {metrics['peak_gpu_warp_mb']:.0f})")
+    ready = f"mesh.ply at {tm['mesh_ready_at']:.1f} s, " if "mesh_ready_at" in tm else ""
+    console.print(f"wall clock from {tm.get('origin', 'start')}: {ready}total {tm['total']:.1f} s; {mem}")
+    console.print(timing.table(tm), markup=False, highlight=False)
+
+
 def train_scene(scene, cfg: Config, out: Path, device: str, console=None, resume: bool = False,
-                finish: bool = True, overwrite: bool = False) -> tuple[object, dict]:
+                finish: bool = True, overwrite: bool = False, clock=None) -> tuple[object, dict]:
     """Train on ``scene`` into run folder ``out``; then mesh/render/evaluate/report.
 
     A folder that already holds a run is refused unless ``resume`` or ``overwrite``;
     Ctrl-C / SIGTERM during training saves a checkpoint and raises ``RunInterrupted``.
+    Phases (imports, setup, kernels, train, then finish_run's) are timed on ``clock``
+    (default: the CLI's, else a new one from now).
 
     Returns:
         (trainer, metrics) — metrics empty when ``finish`` is False.
     """
-    from fastneus.train.checkpoint import CKPT_NAME, load_checkpoint, restore
-    from fastneus.train.interrupt import stop_on_signal
-    from fastneus.train.runfolder import check_run_folder, clear_run_folder
-    from fastneus.train.trainer import Trainer
+    from fastneus import timing
+
+    clock = clock or timing.take_clock()
+    with clock.phase("imports"):
+        import torch._dynamo  # noqa: F401 (torch.optim imports it on first use: 1-3 s, shown here rather than in setup)
+
+        from fastneus.train.checkpoint import CKPT_NAME, load_checkpoint, restore
+        from fastneus.train.interrupt import stop_on_signal
+        from fastneus.train.runfolder import check_run_folder, clear_run_folder
+        from fastneus.train.trainer import Trainer
 
     out = Path(out)
     check_run_folder(out, resume=resume, overwrite=overwrite)
-    trainer = Trainer(scene, cfg, out, device, console)
-    if resume:
-        if not (out / CKPT_NAME).is_file():
-            raise FastneusError("--resume given but the run folder has no checkpoint", file=str(out / CKPT_NAME))
-        restore(trainer, load_checkpoint(out, map_location=device), out / CKPT_NAME)
-    else:
-        clear_run_folder(out)  # inputs are valid by now: an earlier run is replaced, not mixed in
+    if str(device).startswith("cuda"):
+        with clock.phase("cuda_init"):  # the CUDA context (torch's; Warp's driver init is in imports)
+            import torch
+
+            torch.empty(1, device=device)
+            torch.cuda.synchronize(device)
+    with clock.phase("setup"):
+        trainer = Trainer(scene, cfg, out, device, console)
+        trainer.clock = clock
+        if resume:
+            if not (out / CKPT_NAME).is_file():
+                raise FastneusError("--resume given but the run folder has no checkpoint", file=str(out / CKPT_NAME))
+            restore(trainer, load_checkpoint(out, map_location=device), out / CKPT_NAME)
+        else:
+            clear_run_folder(out)  # inputs are valid by now: an earlier run is replaced, not mixed in
     if console is not None:
         console.print(trainer.masks_note)
         console.print(trainer.bg_note)
@@ -93,9 +179,9 @@ def train_scene(scene, cfg: Config, out: Path, device: str, console=None, resume
     atomic_write_json(out / "run.json", {"scene": str(scene.root), "device": str(device), "preset": cfg.preset,
                                          "masks": trainer.masks_note, "background_prior": trainer.bg_note})
     with stop_on_signal(trainer, out):
-        last = trainer.fit()
+        last = trainer.fit(final_save=not finish)  # finish_run saves it right after mesh.ply
     if console is not None and last:
         console.print(f"trained {trainer.step} steps in {trainer.elapsed:.1f}s: loss {last['loss']:.4f}, "
                       f"PSNR {last['psnr']:.2f} dB, i_r {last['i_r']:.4f}, i_b {last['i_b']:.4f}")
-    metrics = finish_run(trainer, console) if finish else {}
+    metrics = finish_run(trainer, console, clock=clock, save_checkpoint=True) if finish else {}
     return trainer, metrics

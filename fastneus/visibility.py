@@ -28,25 +28,27 @@ def seen_cells(scene, frames: list[int], resolution: int, device, min_views: int
         [R^3] bool.
     """
     r = int(resolution)
-    lin = (torch.arange(r, dtype=torch.float64) + 0.5) * (2.0 / r) - 1.0
+    dev = torch.device(device)  # computed where it is used: R^3 x views float64 takes seconds on a host CPU
+    lin = (torch.arange(r, dtype=torch.float64, device=dev) + 0.5) * (2.0 / r) - 1.0
     z, y, x = torch.meshgrid(lin, lin, lin, indexing="ij")          # index x + y R + z R^2
     pts = torch.stack([x, y, z], -1).reshape(-1, 3)                  # [R^3, 3] normalised
-    S = torch.as_tensor(scene.normalisation(), dtype=torch.float64)
+    S = torch.as_tensor(scene.normalisation(), dtype=torch.float64, device=dev)
     world = pts @ S[:3, :3].T + S[:3, 3]
     half = float(scene.bounds.radius) * np.sqrt(3.0) / r           # cell half-diagonal (world)
     seen_views: dict[int, int] = {}
     for i in frames:
         seen_views.setdefault(scene.frames[i].view, i)
-    count = torch.zeros(pts.shape[0], dtype=torch.int32)
+    count = torch.zeros(pts.shape[0], dtype=torch.int32, device=dev)
     for i in seen_views.values():
         cam = scene.frame_camera(i)
-        w2c = torch.as_tensor(scene.world_to_cam(i), dtype=torch.float64)
-        K = torch.as_tensor(cam.K, dtype=torch.float64)
+        w2c = torch.as_tensor(scene.world_to_cam(i), dtype=torch.float64, device=dev)
+        K = torch.as_tensor(cam.K, dtype=torch.float64, device=dev)
         xc = world @ w2c[:3, :3].T + w2c[:3, 3]
         zc = xc[:, 2]
         front = zc > 1e-6
         uv = (xc @ K.T)[:, :2] / zc.clamp_min(1e-6)[:, None]
-        pad = float(max(K[0, 0], K[1, 1])) * half / zc.clamp_min(1e-6)
+        kn = np.asarray(cam.K, dtype=np.float64)                          # (no device sync for two numbers)
+        pad = float(max(kn[0, 0], kn[1, 1])) * half / zc.clamp_min(1e-6)
         inside = front & (uv[:, 0] > -pad) & (uv[:, 0] < cam.width + pad) & (uv[:, 1] > -pad) & \
             (uv[:, 1] < cam.height + pad)
         count += inside.to(torch.int32)

@@ -17,6 +17,7 @@ _OPS = {
     "project_pattern": "project",
     "laser_light": "project",
     "raycast_mesh": "raycast",
+    "marching_cubes": "mesh",
 }
 
 BACKENDS = ("warp", "torch")
@@ -37,15 +38,22 @@ def get_op(name: str, backend: str = "warp"):
     return getattr(mod, name if backend == "warp" else f"{name}_torch")
 
 
-def prepare_kernels(device, say=None, backend: str = "warp", ops=("hash_encode", "march_rays", "render_pattern")) -> float:
+def prepare_kernels(device, say=None, backend: str = "warp", ops=("hash_encode", "march_rays", "render_pattern"),
+                    report: dict | None = None) -> float:
     """Load every Warp module a training step uses on ``device`` before timing starts.
 
     On a machine's first run (or after a kernel change) this compiles them and, when ``say``
-    is given, prints that it does. The torch backend needs nothing. Returns seconds spent.
+    is given, prints that it does. The torch backend needs nothing. A module of ``ops`` that
+    launches kernels defined elsewhere (e.g. Warp's own marching cubes) names them in a
+    ``warp_modules()`` function. ``report``, if given, receives ``compiled``: the modules that
+    were not in the kernel cache. Returns seconds spent.
     """
     if backend != "warp":
         return 0.0
     from ._warp import load_modules
 
-    mods = list(dict.fromkeys(importlib.import_module(f"{__name__}.{_OPS[o]}") for o in ops))
-    return load_modules(mods, str(device), say=say)
+    mods = []
+    for o in ops:
+        m = importlib.import_module(f"{__name__}.{_OPS[o]}")
+        mods += m.warp_modules() if hasattr(m, "warp_modules") else [m]
+    return load_modules(list(dict.fromkeys(mods)), str(device), say=say, report=report)

@@ -100,9 +100,9 @@ def launch(kernel, dim, inputs, ref: torch.Tensor, outputs=None, adj_inputs=None
 def _cached(module, device: str) -> bool | None:
     """True if ``module``'s compiled binary for ``device`` is in Warp's kernel cache (None = unknown)."""
     try:
-        from warp._src.context import get_module, runtime
+        from warp._src.context import Module, get_module, runtime
 
-        m = get_module(module.__name__)
+        m = module if isinstance(module, Module) else get_module(module.__name__)
         dev = runtime.get_device(device)
         bd = 1 if dev.is_cpu else None  # CPU launches build a block_dim=1 variant (its own hash)
         folder = os.path.join(wp.config.kernel_cache_dir, m.get_module_identifier(bd))
@@ -111,13 +111,20 @@ def _cached(module, device: str) -> bool | None:
         return None
 
 
-def load_modules(modules, device: str, say=None) -> float:
+def _name(module) -> str:
+    """Name of a Python module holding Warp kernels, or of a ``warp.Module``."""
+    return getattr(module, "__name__", None) or module.name
+
+
+def load_modules(modules, device: str, say=None, report: dict | None = None) -> float:
     """Load (compile on a machine's first run) the Warp modules ``modules`` on ``device``.
 
     Args:
-        modules: Python modules holding Warp kernels.
+        modules: Python modules holding Warp kernels, or ``warp.Module`` objects.
         device: "cpu" or "cuda[:N]".
         say: optional print function; told when kernels must be compiled first.
+        report: optional dict; ``report["compiled"]`` gets the names of the modules that were
+            not in the kernel cache (compiled now), appended to what it holds.
     Returns:
         Seconds spent.
     """
@@ -125,7 +132,9 @@ def load_modules(modules, device: str, say=None) -> float:
     dev = "cpu" if str(device) == "cpu" else (str(device) if ":" in str(device) else
                                              f"cuda:{torch.cuda.current_device()}")
     t = time.perf_counter()
-    missing = [m.__name__.rsplit(".", 1)[-1] for m in modules if _cached(m, dev) is False]
+    missing = [_name(m).rsplit(".", 1)[-1] for m in modules if _cached(m, dev) is False]
+    if report is not None:
+        report.setdefault("compiled", []).extend(missing)
     if missing and say is not None:
         say(f"compiling Warp kernels for {dev} ({', '.join(missing)}): once per machine and kernel version, "
             f"about 10-30 s; cached in {wp.config.kernel_cache_dir}")
@@ -135,3 +144,19 @@ def load_modules(modules, device: str, say=None) -> float:
     if missing and say is not None:
         say(f"kernels compiled in {dt:.1f} s")
     return dt
+
+
+def peak_memory_bytes(device) -> int:
+    """High-water mark of Warp's own CUDA memory pool on ``device`` (0 on the CPU, when Warp
+    allocated nothing through a pool, or when the query is unsupported).
+
+    fastneus kernels take torch tensors and allocate nothing through Warp; Warp's own
+    geometry routines (sparse marching cubes) do.
+    """
+    if not str(device).startswith("cuda") or not _initialised:
+        return 0
+    try:
+        dev = str(device) if ":" in str(device) else f"cuda:{torch.cuda.current_device()}"
+        return int(wp.get_mempool_used_mem_high(dev))
+    except Exception:  # noqa: BLE001 - no mempool on this device/driver
+        return 0

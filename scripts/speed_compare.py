@@ -34,6 +34,22 @@ median ms per phase over --breakdown-steps steps; the real trainer is not instru
 Outputs in --out: speed-compare-<device>.json, .md, chamfer-vs-time-<device>.png; the
 Markdown is printed and (unless --no-md) written to the "speed-compare-<device>" section of
 docs/BENCHMARKS.md.
+
+--wallclock: instead of the comparison, the product end to end. For each budget (and
+--repeat), a fresh process runs `fastneus train SCENE --device D time_budget=B` (the CLI's
+default preset; --set adds overrides, --mesh-res sets mesh_resolution) and the per-phase wall
+clock it writes to metrics.json is collected: startup (interpreter + imports before the first
+phase, from the process start), scene load, imports, CUDA init, trainer setup, kernel
+load/compile, training, checkpoints, mesh, renders, evaluation, report, total, plus when
+mesh.ply was written (mesh_ready, the number to keep under budget + 5 s), the process's own
+wall time measured from outside, and peak GPU / host memory. --cold-kernels gives the first
+repeat of each budget an empty Warp kernel cache (measures a first-ever run's compile).
+
+    python scripts/speed_compare.py SCENE --wallclock --budgets 20 [--repeat 3] [--device cuda]
+        [--mesh-res 512] [--cold-kernels] [--set key=value ...] [--out DIR] [--no-md]
+
+Outputs wallclock-<device>.json and .md (and the "wallclock-<device>" section of
+docs/BENCHMARKS.md unless --no-md).
 """
 from __future__ import annotations
 
@@ -337,6 +353,94 @@ def run_method(method: str, args) -> dict:
     return res
 
 
+# ----------------------------------------------------------------------------- end-to-end wall clock
+WALL_PHASES = ("startup", "scene_load", "imports", "cuda_init", "setup", "kernels", "train", "checkpoint", "mesh",
+               "renders", "eval", "report", "other", "total")
+
+
+def wallclock_run(args, budget: float, rep: int, out: Path) -> dict:
+    """One `fastneus train` process with ``time_budget=budget``; its timing, memory and result."""
+    import shutil
+
+    run = out / f"wall-{budget:g}s-{rep}"
+    env = dict(os.environ, PYTHONUNBUFFERED="1")
+    if args.cold_kernels and rep == 0:
+        cache = out / f"warp-cache-{budget:g}s"
+        shutil.rmtree(cache, ignore_errors=True)
+        env["WARP_CACHE_PATH"] = str(cache)
+    cmd = [sys.executable, "-m", "fastneus.cli", "train", str(args.scene), "--out", str(run), "--device",
+           args.device, "--overwrite", f"time_budget={budget:g}"]
+    if args.mesh_res_given is not None:
+        cmd.append(f"mesh_resolution={args.mesh_res_given}")
+    cmd += list(args.set)
+    print("$ " + " ".join(cmd), flush=True)
+    t = time.perf_counter()
+    r = subprocess.run(cmd, capture_output=True, text=True, env=env)
+    wall = time.perf_counter() - t
+    if r.returncode != 0:
+        raise SystemExit(f"fastneus train failed (exit {r.returncode}):\n{r.stderr[-3000:]}")
+    m = json.loads((run / "metrics.json").read_text())
+    tm = m["timing"]
+    notes = tm.get("notes", {})
+    row = {"budget_s": budget, "repeat": rep, **{p: tm.get(p, 0.0) for p in WALL_PHASES},
+           "mesh_ready_s": tm.get("mesh_ready_at"), "process_s": round(wall, 3), "steps": m.get("steps"),
+           "peak_gpu_mb": m.get("peak_gpu_mb"), "peak_gpu_torch_mb": m.get("peak_gpu_torch_mb"),
+           "peak_gpu_warp_mb": m.get("peak_gpu_warp_mb"), "peak_rss_mb": m.get("peak_rss_mb"),
+           "chamfer_mm": m.get("chamfer_gt2rec_mm"), "mesh_faces": m.get("mesh_faces"),
+           "compiled": notes.get("kernels_compiled", []), "mesh_detail": notes.get("mesh", {}),
+           "preset": json.loads((run / "run.json").read_text()).get("preset"), "run": str(run)}
+    row["over_budget_s"] = round(row["mesh_ready_s"] - budget, 3) if row["mesh_ready_s"] is not None else None
+    print(f"  budget {budget:g} s: mesh.ply at {row['mesh_ready_s']} s (+{row['over_budget_s']} s), total "
+          f"{row['total']} s, process {row['process_s']} s, steps {row['steps']}", flush=True)
+    return row
+
+
+def wallclock(args) -> None:
+    """--wallclock: end-to-end CLI runs, a per-phase table -> stdout, JSON, Markdown."""
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    t_all = time.perf_counter()
+    rows = [wallclock_run(args, b, rep, out) for b in args.budgets for rep in range(args.repeat)]
+    kind = "cuda" if args.device.startswith("cuda") else "cpu"
+    cols = [f"{r['budget_s']:g} s #{r['repeat']}" for r in rows]
+    table_rows = []
+    for p in WALL_PHASES[:-1] + ("total", "mesh_ready_s", "over_budget_s", "process_s"):
+        d = {"phase": f"**{p}**" if p in ("total", "mesh_ready_s") else p}
+        d.update({c: r.get(p) if r.get(p) is not None else "" for c, r in zip(cols, rows)})
+        table_rows.append(d)
+    for p in ("steps", "peak_gpu_mb", "peak_gpu_torch_mb", "peak_gpu_warp_mb", "peak_rss_mb", "chamfer_mm",
+              "mesh_faces"):
+        if any(r.get(p) is not None for r in rows):
+            table_rows.append({"phase": p, **{c: r.get(p) if r.get(p) is not None else "" for c, r in zip(cols, rows)}})
+    mesh_rows = [{"run": c, "res": r["mesh_detail"].get("resolution", ""), "mc": r["mesh_detail"].get("mc", ""),
+                  "points_M": r["mesh_detail"].get("points", 0) / 1e6,
+                  "dense_M": r["mesh_detail"].get("dense_points", 0) / 1e6, "cells": r["mesh_detail"].get("cells", ""),
+                  **{k: r["mesh_detail"].get(k, "") for k in ("coarse_s", "fine_s", "cells_s", "mc_s", "filter_s")}}
+                 for c, r in zip(cols, rows)]
+    compiled = sorted({m for r in rows for m in r["compiled"]})
+    cmd = "python scripts/speed_compare.py " + " ".join(sys.argv[1:])
+    text = (f"### End-to-end wall clock on {kind.upper()}: {Path(args.scene).name}\n\n"
+            f"Machine: {machine(args.device)}; commit {git_rev()}; {time.strftime('%Y-%m-%d')}. Command: `{cmd}`.\n"
+            f"One fresh `fastneus train` process per column (preset {rows[0]['preset']}); seconds from the process "
+            f"start (metrics.json `timing`). startup = interpreter, torch import and argument parsing; mesh_ready_s ="
+            f" when mesh.ply was written; over_budget_s = mesh_ready_s - budget (target <= 5 s); process_s = the "
+            f"process's wall time measured by this script (includes exit). Peak GPU = torch allocator peak + "
+            f"Warp memory-pool peak (an upper bound). Kernels compiled in these runs: "
+            f"{', '.join(compiled) if compiled else 'none (warm cache)'}.\n\n"
+            + md_table(table_rows, ["phase"] + cols)
+            + "\nMesh extraction detail (seconds; points evaluated vs the dense grid):\n\n"
+            + md_table(mesh_rows, ["run", "res", "mc", "points_M", "dense_M", "cells", "coarse_s", "fine_s", "cells_s",
+                                   "mc_s", "filter_s"]))
+    print(text)
+    write_json(out / f"wallclock-{kind}.json", {"machine": machine(args.device), "git": git_rev(), "command": cmd,
+                                                "scene": str(args.scene), "rows": rows,
+                                                "wall_s": round(time.perf_counter() - t_all, 1)})
+    (out / f"wallclock-{kind}.md").write_text(text)
+    print(f"wrote {out / f'wallclock-{kind}.json'} and .md")
+    if not args.no_md:
+        update_section(ROOT / "docs" / "BENCHMARKS.md", f"wallclock-{kind}", text)
+
+
 # ----------------------------------------------------------------------------- report
 def time_to_target(points: list[dict], target: float) -> float | None:
     """Training time from which the Chamfer stays at or below ``target`` at every later
@@ -468,6 +572,11 @@ def main() -> None:
     ap.add_argument("--no-warmup", action="store_true", help="skip the untimed kernel/BLAS warm-up")
     ap.add_argument("--no-isolate", action="store_true", help="run all methods in this process")
     ap.add_argument("--report-from", default=None, help="re-write the outputs from a previous run's JSON (no training)")
+    ap.add_argument("--wallclock", action="store_true",
+                    help="end-to-end `fastneus train` processes: per-phase wall clock from process start")
+    ap.add_argument("--repeat", type=int, default=1, help="--wallclock: runs per budget")
+    ap.add_argument("--cold-kernels", action="store_true",
+                    help="--wallclock: the first run of each budget starts with an empty Warp kernel cache")
     ap.add_argument("--worker", default=None, help=argparse.SUPPRESS)
     ap.add_argument("--worker-out", default=None, help=argparse.SUPPRESS)
     args = ap.parse_args()
@@ -475,12 +584,19 @@ def main() -> None:
     if args.threads:
         torch.set_num_threads(args.threads)
     args.budgets = sorted(float(b) for b in args.budgets.split(","))
+    args.mesh_res_given = args.mesh_res
     args.mesh_res = args.mesh_res or (256 if cuda else 64)
     args.psnr_pixels = (0 if cuda else 1024) if args.psnr_pixels is None else args.psnr_pixels
     args.chunk = args.chunk or (8192 if cuda else 2048)
 
     if args.worker:
         write_json(Path(args.worker_out), run_method(args.worker, args))
+        return
+
+    if args.wallclock:
+        if args.repeat < 1:
+            raise SystemExit("--repeat must be >= 1")
+        wallclock(args)
         return
 
     if args.report_from:

@@ -52,3 +52,25 @@ def test_speed_compare_cpu_end_to_end(tiny_scene, tmp_path):
     md = (out / "speed-compare-cpu.md").read_text()
     assert "| method | budget_s |" in md and "ActiveNeuS baseline" in md
     assert (out / "chamfer-vs-time-cpu.png").stat().st_size > 1000
+
+
+def test_speed_compare_wallclock_cpu(tiny_scene, tmp_path):
+    """--wallclock: one `fastneus train` process per budget; the per-phase table from its metrics.json."""
+    out = tmp_path / "wall"
+    cmd = [sys.executable, str(ROOT / "scripts" / "speed_compare.py"), str(tiny_scene), "--device", "cpu",
+           "--wallclock", "--budgets", "1", "--out", str(out), "--no-md", "--mesh-res", "24",
+           "--set", "occ_resolution=32", "target_samples=4096", "init_rays=256", "max_rays=1024",
+           "render_frames=[0]"]
+    env = dict(os.environ, PYTHONPATH=str(ROOT / "scripts") + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    r = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=300)
+    assert r.returncode == 0, r.stderr[-3000:]
+    data = json.loads((out / "wallclock-cpu.json").read_text())
+    (row,) = data["rows"]
+    assert row["budget_s"] == 1.0 and row["preset"] == "cpu-quick" and row["steps"] >= 1
+    for k in ("startup", "scene_load", "imports", "setup", "kernels", "train", "mesh", "renders", "eval", "total"):
+        assert row[k] >= 0, k
+    assert 1.0 <= row["mesh_ready_s"] <= row["total"] <= row["process_s"]
+    assert row["over_budget_s"] == pytest.approx(row["mesh_ready_s"] - 1.0, abs=1e-3)
+    assert row["peak_rss_mb"] > 100 and row["mesh_detail"]["resolution"] == 24
+    md = (out / "wallclock-cpu.md").read_text()
+    assert "| phase | 1 s #0 |" in md and "**mesh_ready_s**" in md and "Mesh extraction detail" in md

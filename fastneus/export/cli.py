@@ -48,7 +48,7 @@ def _check_resolution(res: int | None) -> None:
 
 
 def _mesh(args) -> int:
-    from fastneus.export.mesh import extract_mesh, save_mesh
+    from fastneus.export.mesh import extract_mesh_arrays, save_mesh
 
     _check_resolution(args.resolution)
     if args.out is not None:
@@ -60,7 +60,8 @@ def _mesh(args) -> int:
         check_out_dir(Path(args.out).parent)
     device = resolve_device(args.device)
     scene, tr = open_run(args.run, device, args.scene)
-    mesh = extract_mesh(tr.field, scene, args.resolution, tr.device, bound=tr.cfg.bound, allowed=tr.seen)
+    mesh = extract_mesh_arrays(tr.field, scene, args.resolution or tr.cfg.mesh_resolution, tr.device,
+                               bound=tr.cfg.bound, allowed=tr.seen)
     out = Path(args.out) if args.out else Path(args.run) / "mesh.ply"
     save_mesh(mesh, out)
     print(f"{out}: {len(mesh.vertices)} vertices, {len(mesh.faces)} faces (world units, {scene.units})")

@@ -45,7 +45,15 @@ def write_report(run: Path, metrics: dict, render_paths: dict[int, dict[str, str
         _svg_curve(steps, [r["i_b"] for r in log], "i_b"),
     ])
     rows = "".join(f"<tr><td>{html.escape(k)}</td><td>{v:.4g}</td></tr>" if isinstance(v, float) else
-                   f"<tr><td>{html.escape(k)}</td><td>{html.escape(str(v))}</td></tr>" for k, v in metrics.items())
+                   f"<tr><td>{html.escape(k)}</td><td>{html.escape(str(v))}</td></tr>" for k, v in metrics.items()
+                   if not isinstance(v, dict))
+    tm = metrics.get("timing") or {}
+    wall = ""
+    if tm:  # seconds per phase so far (the report itself is the last phase)
+        trs = "".join(f"<tr><td>{html.escape(k)}</td><td>{v:.2f} s</td></tr>" for k, v in tm.items()
+                      if isinstance(v, (int, float)) and not isinstance(v, bool))
+        wall = (f"<h2>Wall clock (seconds from {html.escape(str(tm.get('origin', 'start')))})</h2>"
+                f"<table>{trs}</table>")
     labels = [("photo", "photo (input)"), ("color", "rendered with pattern"), ("texture", "texture only (i_r=i_b=0)"),
               ("clean", "GT pattern-free"), ("depth", "depth"), ("normal", "normals")]
     figs = []
@@ -61,6 +69,7 @@ figcaption{{font-size:12px;text-align:center}} table{{border-collapse:collapse}}
 td{{border:1px solid #ddd;padding:2px 8px;font-size:13px}}</style></head><body>
 <h1>{html.escape(title)}</h1>
 <h2>Metrics</h2><table>{rows}</table>
+{wall}
 <h2>Training</h2><div class="row">{curves}</div>
 <h2>Renders</h2>{''.join(figs)}
 <h2>Resolved config</h2><pre style="font-size:11px">{cfg}</pre>

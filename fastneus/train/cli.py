@@ -23,13 +23,16 @@ ONESHOT_CPU = {"view_dependent": False, "curvature_weight": 5e-4}
 
 
 def _run(args, tag: str, default_preset: str, oneshot_frame: int | None = None) -> int:
+    from fastneus import timing
     from fastneus.config import load_config
     from fastneus.formats.detect import load_scene
-    from fastneus.pipeline import train_scene
+    from fastneus.pipeline import print_run_summary, train_scene
 
+    clock = timing.take_clock()  # from the process start (fastneus.cli)
     device = resolve_device(args.device)
     preset = args.config or (default_preset if device.startswith("cuda") else "cpu-quick")
-    scene = load_scene(args.scene)
+    with clock.phase("scene_load"):
+        scene = load_scene(args.scene)
     base: dict = {}
     if oneshot_frame is not None:
         i = oneshot_frame
@@ -45,11 +48,13 @@ def _run(args, tag: str, default_preset: str, oneshot_frame: int | None = None) 
     con.print(f"[bold]fastneus {tag}[/bold]: scene {args.scene} ({len(scene.frames)} frames, "
               f"{len(cfg.frames) if cfg.frames else len(scene.frames)} used), preset {cfg.preset}, "
               f"device {device}, backend {cfg.backend} -> {out}")
-    _, metrics = train_scene(scene, cfg, out, device, console=con, resume=args.resume, overwrite=args.overwrite)
+    _, metrics = train_scene(scene, cfg, out, device, console=con, resume=args.resume, overwrite=args.overwrite,
+                             clock=clock)
     show = [k for k in ("chamfer_gt2rec_mm", "chamfer_gt2rec_filtered_mm", "visible_gt2rec_mm", "fscore",
                         "depth_err_mm", "depth_err_pct", "depth_within_1pct", "depth_lit_err_pct",
                         "psnr_pattern", "psnr_texture", "i_r", "i_b") if k in metrics]
     con.print("  ".join(f"{k} {metrics[k]:.4g}" for k in show))
+    print_run_summary(metrics, con)
     con.print(f"report: {out / 'report.html'}")
     return 0
 

@@ -133,6 +133,7 @@ class Trainer:
         self.gen = torch.Generator(device=self.device)
         self.gen.manual_seed(cfg.seed)
         self.stop_signal: str | None = None  # set by interrupt.stop_on_signal: stop after this step
+        self.clock = None  # fastneus.timing.RunClock of the run (pipeline.train_scene): fit() records its phases
 
     # ------------------------------------------------------------------ helpers
     def illumination(self) -> tuple[torch.Tensor, torch.Tensor]:
@@ -259,13 +260,21 @@ class Trainer:
                 "eik": loss_eik.detach(), "spr": s / batch["origins"].shape[0], "samples": s}
 
     # ------------------------------------------------------------------ loop
-    def fit(self) -> dict:
-        """Train until ``steps`` or, when set, ``time_budget``; returns the final log record."""
+    def fit(self, final_save: bool = True) -> dict:
+        """Train until ``steps`` or, when set, ``time_budget``; returns the final log record.
+
+        Args:
+            final_save: write the checkpoint at the end (always when stopped by a signal);
+                ``pipeline.train_scene`` writes it itself after mesh.ply, off the mesh's critical path.
+        """
         from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
         c = self.cfg
+        t_fit = time.perf_counter()
         save_config(c, self.out / "config.yaml")
-        self.prime()
+        kern: dict = {}
+        t_kernels = self.prime(report=kern)
+        t_save = 0.0
         from fastneus.geometry_init import initialise_geometry
 
         t0 = time.perf_counter()
@@ -319,19 +328,39 @@ class Trainer:
                                                     f"{last['it_s']:.1f} it/s"))
                 progress.update(task, completed=done())
                 if self.step % c.save_every == 0:
+                    t_save -= time.perf_counter()
                     self.save()
+                    t_save += time.perf_counter()
         logf.close()
-        self.save()
+        if final_save or self.stop_signal is not None:
+            t_save -= time.perf_counter()
+            self.save()
+            t_save += time.perf_counter()
+        clock = self.clock
+        if clock is not None:
+            clock.add("kernels", t_kernels)
+            clock.notes["kernels_compiled"] = kern.get("compiled", [])
+            clock.add("checkpoint", t_save)
+            clock.add("train", time.perf_counter() - t_fit - t_kernels - t_save)
         return last
 
-    def prime(self) -> None:
+    def prime(self, report: dict | None = None) -> float:
         """Load (on a machine's first run: compile) every Warp kernel of a step before the clock
-        starts, so a time budget is spent on training; no parameter changes."""
+        starts, so a time budget is spent on training; no parameter changes. On CUDA this
+        includes the marching cubes of the mesh export, so no compile lands after training.
+
+        Args:
+            report: optional dict; gets ``compiled``, the modules compiled now (not cached).
+        Returns:
+            Seconds spent.
+        """
         from fastneus.kernels import prepare_kernels
 
-        prepare_kernels(self.device, say=self.console.print if self.console is not None else None,
-                        backend=self.cfg.backend,
-                        ops=("hash_encode", "march_rays", "render_pattern") + self.rig.kernel_ops())
+        ops = ("hash_encode", "march_rays", "render_pattern") + self.rig.kernel_ops()
+        if self.device.type == "cuda":
+            ops += ("marching_cubes",)
+        return prepare_kernels(self.device, say=self.console.print if self.console is not None else None,
+                               backend=self.cfg.backend, ops=ops, report=report)
 
     # ------------------------------------------------------------------ checkpoints
     def state(self) -> dict:
