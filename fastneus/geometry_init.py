@@ -20,6 +20,7 @@ import numpy as np
 import torch
 
 from fastneus.errors import FastneusError
+from fastneus.train.adam import Adam
 
 
 def decodable_views(scene, frames: list[int]) -> list[list[int]] | None:
@@ -102,7 +103,7 @@ def fit_sdf_to_points(field, points: torch.Tensor, dirs: torch.Tensor, origins: 
         the last loss.
     """
     params = [field.table] + list(field.sdf_net.parameters())
-    opt = torch.optim.Adam(params, lr=lr, betas=(0.9, 0.99), eps=1e-15)
+    opt = Adam(params, lr=lr, betas=(0.9, 0.99), eps=1e-15)
     n = points.shape[0]
     dev = points.device
     t_surf = (points - origins).norm(dim=-1)

@@ -4,8 +4,8 @@ from __future__ import annotations
 import torch
 
 
-def finite_step(opt: torch.optim.Optimizer, loss: torch.Tensor) -> bool:
-    """Step ``opt`` unless the loss or any gradient is non-finite; then drop the gradients.
+def finite_step(opt, loss: torch.Tensor) -> bool:
+    """Step ``opt`` (fastneus.train.adam.Adam or a torch optimiser) unless the loss or any gradient is non-finite; then drop the gradients.
 
     One fused norm over all gradients (a NaN/Inf anywhere makes its norm non-finite) and a
     single host read, instead of one check per parameter: the training step is launch-bound.

@@ -18,6 +18,7 @@ from fastneus.field.model import SDFField
 from fastneus.field.renderer import render_rays
 from fastneus.kernels.occupancy import OccupancyGrid
 from fastneus.train.checkpoint import CKPT_NAME, load_checkpoint, restore, save_checkpoint  # noqa: F401 (re-export)
+from fastneus.train.adam import Adam
 from fastneus.train.guard import finite_step
 from fastneus.multishot import make_bank
 from fastneus.rig import Rig
@@ -122,7 +123,7 @@ class Trainer:
             {"params": [self.log_ir, self.log_ib], "lr": cfg.lr_illum, "name": "illum"}] + self.rig.param_groups(cfg)
         for g in groups:
             g["base_lr"] = g["lr"]
-        self.opt = torch.optim.Adam(groups, betas=(0.9, 0.99), eps=cfg.adam_eps)
+        self.opt = Adam(groups, betas=(0.9, 0.99), eps=cfg.adam_eps)  # torch.optim's would import TorchDynamo (4 s)
         self.step = 0
         self.n_rays = cfg.init_rays
         self.elapsed = 0.0          # training seconds, kept across resume

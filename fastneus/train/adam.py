@@ -1,0 +1,127 @@
+"""Adam without torch.optim: the same update as ``torch.optim.Adam`` (foreach), no TorchDynamo.
+
+Every ``torch.optim.Optimizer`` imports ``torch._dynamo`` when its first parameter group is
+added (``add_param_group`` is wrapped in ``torch._disable_dynamo``). That import took 4.1 s
+of a 20-s GPU run's wall clock on the H100 machine (1.3 s on the 2-core CPU), more than the
+whole start-up budget of issue 10, for a compiler fastneus never uses. This class keeps the
+interface the trainer relies on (``param_groups`` dicts with a mutable ``lr``, ``step``,
+``zero_grad``, ``state_dict`` / ``load_state_dict``, and the state layout of torch's Adam, so
+checkpoints written by either load in both) and does the arithmetic with ``torch._foreach_*``
+ops, as torch's multi-tensor Adam does. tests/test_adam.py checks it step by step against
+``torch.optim.Adam``.
+"""
+from __future__ import annotations
+
+import math
+
+import torch
+
+
+# the group options torch.optim.Adam expects in a state it loads (all off here)
+_TORCH_KEYS = {"weight_decay": 0.0, "amsgrad": False, "maximize": False, "foreach": None, "capturable": False,
+               "differentiable": False, "fused": None, "decoupled_weight_decay": False}
+
+
+class Adam:
+    """Adam (Kingma & Ba) with bias correction; no weight decay, no amsgrad.
+
+    Args:
+        params: an iterable of tensors, or of dicts with ``params`` and per-group options
+            (``lr``, ``betas``, ``eps``; any other keys are kept, e.g. ``name``, ``base_lr``).
+        lr, betas, eps: defaults for groups that do not set them.
+    """
+
+    def __init__(self, params, lr: float = 1e-3, betas: tuple[float, float] = (0.9, 0.999), eps: float = 1e-8):
+        params = list(params)
+        if not params:
+            raise ValueError("Adam got an empty parameter list")
+        groups = params if isinstance(params[0], dict) else [{"params": params}]
+        self.defaults = {"lr": lr, "betas": tuple(betas), "eps": eps}
+        self.param_groups: list[dict] = []
+        self.state: dict[torch.Tensor, dict] = {}
+        for g in groups:
+            g = dict(g)
+            g["params"] = list(g["params"])
+            for k, v in self.defaults.items():
+                g.setdefault(k, v)
+            self.param_groups.append(g)
+
+    def zero_grad(self, set_to_none: bool = True) -> None:
+        for g in self.param_groups:
+            for p in g["params"]:
+                if p.grad is None:
+                    continue
+                if set_to_none:
+                    p.grad = None
+                else:
+                    p.grad.detach_().zero_()
+
+    @torch.no_grad()
+    def step(self) -> None:
+        """One Adam update of every parameter that has a gradient (host arithmetic only: no sync)."""
+        for g in self.param_groups:
+            b1, b2 = g["betas"]
+            # parameters with the same step count share one foreach call (all of them, normally)
+            by_step: dict[int, tuple[list, list, list, list]] = {}
+            for p in g["params"]:
+                if p.grad is None:
+                    continue
+                st = self.state.get(p)
+                if st is None:
+                    st = self.state[p] = {"step": 0, "exp_avg": torch.zeros_like(p),
+                                          "exp_avg_sq": torch.zeros_like(p)}
+                st["step"] += 1
+                lists = by_step.setdefault(st["step"], ([], [], [], []))
+                lists[0].append(p)
+                lists[1].append(p.grad)
+                lists[2].append(st["exp_avg"])
+                lists[3].append(st["exp_avg_sq"])
+            for t, (ps, gs, ms, vs) in by_step.items():
+                torch._foreach_lerp_(ms, gs, 1 - b1)
+                torch._foreach_mul_(vs, b2)
+                torch._foreach_addcmul_(vs, gs, gs, 1 - b2)
+                bc1 = 1 - b1 ** t
+                bc2_sqrt = math.sqrt(1 - b2 ** t)
+                denom = torch._foreach_sqrt(vs)
+                torch._foreach_div_(denom, bc2_sqrt)
+                torch._foreach_add_(denom, g["eps"])
+                torch._foreach_addcdiv_(ps, ms, denom, -g["lr"] / bc1)
+
+    # ------------------------------------------------------------------ checkpoints
+    def state_dict(self) -> dict:
+        """torch.optim's layout: ``state`` keyed by parameter index, groups with index lists."""
+        index, i = {}, 0
+        groups = []
+        for g in self.param_groups:
+            ids = []
+            for p in g["params"]:
+                index[p] = i
+                ids.append(i)
+                i += 1
+            groups.append({**_TORCH_KEYS, **{k: v for k, v in g.items() if k != "params"}, "params": ids})
+        state = {index[p]: {"step": torch.tensor(float(st["step"])), "exp_avg": st["exp_avg"],
+                            "exp_avg_sq": st["exp_avg_sq"]} for p, st in self.state.items() if p in index}
+        return {"state": state, "param_groups": groups}
+
+    def load_state_dict(self, sd: dict) -> None:
+        """Load a :meth:`state_dict` of this class or of ``torch.optim.Adam`` (same layout)."""
+        groups = sd["param_groups"]
+        if len(groups) != len(self.param_groups) or any(
+                len(a["params"]) != len(b["params"]) for a, b in zip(groups, self.param_groups)):
+            raise ValueError("optimizer state does not match the parameter groups")
+        by_index = {}
+        for saved, g in zip(groups, self.param_groups):
+            for i, p in zip(saved["params"], g["params"]):
+                by_index[i] = p
+            for k, v in saved.items():
+                if k != "params":
+                    g[k] = tuple(v) if k == "betas" else v
+        self.state = {}
+        for i, st in sd["state"].items():
+            p = by_index.get(int(i))
+            if p is None:
+                continue
+            step = st["step"]
+            self.state[p] = {"step": int(step.item() if torch.is_tensor(step) else step),
+                             "exp_avg": st["exp_avg"].to(device=p.device, dtype=p.dtype).clone(),
+                             "exp_avg_sq": st["exp_avg_sq"].to(device=p.device, dtype=p.dtype).clone()}
