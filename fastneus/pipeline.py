@@ -147,8 +147,6 @@ def train_scene(scene, cfg: Config, out: Path, device: str, console=None, resume
 
     clock = clock or timing.take_clock()
     with clock.phase("imports"):
-        import torch._dynamo  # noqa: F401 (torch.optim imports it on first use: 1-3 s, shown here rather than in setup)
-
         from fastneus.train.checkpoint import CKPT_NAME, load_checkpoint, restore
         from fastneus.train.interrupt import stop_on_signal
         from fastneus.train.runfolder import check_run_folder, clear_run_folder
