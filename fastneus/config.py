@@ -87,6 +87,10 @@ class Config:
     inv_s_floor_start: float = 20.0    # to this value over the first inv_s_floor_frac of the run (end 0 = learned only)
     inv_s_floor_frac: float = 0.6
     normal_eps_min: float = 1e-3       # lower bound for the finite-difference step (normalised)
+    sdf_grad: str = "fd"               # SDF gradient (normals, eikonal): fd = 4-tap tetrahedron finite
+                                       # differences (hash grid + SDF MLP on 5x the points) | analytic =
+                                       # hash features and their d/dx from one kernel, MLP d/dinput by
+                                       # autograd (1x the points; the curvature prior still uses taps)
 
     # --- optimisation ---
     lr: float = 1e-2
@@ -140,6 +144,7 @@ _CHOICES = {
     "bg_prior": ("auto", "on", "off"),
     "init_geometry": ("auto", "decode", "sphere"),
     "medium": ("auto", "on", "off"),
+    "sdf_grad": ("fd", "analytic"),
 }
 # fractions of the run: each must lie in [0, 1]
 _FRACTIONS = ("occ_warmup_frac", "c2f_frac", "inv_s_floor_frac", "warmup_frac", "color_warmup_frac",

@@ -11,6 +11,7 @@ import importlib
 # op name -> module holding ``name`` and ``name_torch``
 _OPS = {
     "hash_encode": "hashgrid",
+    "hash_encode_jac": "hashgrid",
     "march_rays": "occupancy",
     "occupancy_alpha": "occupancy",
     "render_pattern": "render",

@@ -6,6 +6,9 @@ the 8 corner entries of ``table[l]``. A corner's entry is found by dense indexin
 ``x + y*(r+1) + z*(r+1)^2`` when ``(res_l+1)^3 <= T``, else by the spatial hash
 ``x ^ (y*2654435761) ^ (z*805459861) mod T`` in uint32 arithmetic. Levels
 ``>= active_levels`` output zeros (coarse-to-fine training) and get no gradient.
+
+``hash_encode_jac`` returns the same features plus their spatial Jacobian d feats / d u from
+one kernel (analytic SDF normals, docs/INTERNALS.md "hash_encode_jac").
 """
 from __future__ import annotations
 
@@ -267,6 +270,187 @@ def _hash_bwd_kernel(
         wp.atomic_add(grad_u, n, wp.vec3(dx * rs, dy * rs, dz * rs))
 
 
+# ----------------------------------------------------------------------------- features + Jacobian
+# Trilinear weights w_c = a_x a_y a_z with a = f (corner offset 1) or 1 - f (offset 0); their
+# derivatives d w_c / d f_x = (+-1) a_y a_z, etc. With s = res on an axis where u lies in [0, 1]
+# and s = 0 where the clamp is active, d feat / d u_k = s_k * sum_c (d w_c / d f_k) table[c].
+
+
+@wp.func
+def _axis_scale(u: float, res: int):
+    """d (clamp(u, 0, 1) * res) / d u: res inside [0, 1] (ends included, as torch's clamp), else 0."""
+    s = float(res)
+    if u < 0.0 or u > 1.0:
+        s = 0.0
+    return s
+
+
+@wp.kernel
+def _hash_jac_fwd_kernel(
+    u: wp.array(dtype=wp.vec3),  # [N]
+    table: wp.array(dtype=float),  # [L*T*F] flat
+    levels: wp.array2d(dtype=wp.int32),  # [L, 2] (res, dense)
+    n_active: int,  # levels launched, <= L
+    T: int,
+    F: int,
+    out: wp.array2d(dtype=float),  # [N, L*F], zero-initialised
+    jac: wp.array2d(dtype=wp.vec3),  # [N, L*F] of d feat / d u, zero-initialised
+):
+    # One thread per (point, active level), as _hash_fwd_kernel; the features are computed with
+    # the same operations in the same order, so they equal hash_encode's bit for bit.
+    tid = wp.tid()
+    n = tid // n_active
+    l = tid - n * n_active
+    res = levels[l, 0]
+    dense = levels[l, 1]
+    r1 = res + 1
+    p = u[n]
+    cx, fx = _cell(p[0], res)
+    cy, fy = _cell(p[1], res)
+    cz, fz = _cell(p[2], res)
+    gx = 1.0 - fx
+    gy = 1.0 - fy
+    gz = 1.0 - fz
+    sx = _axis_scale(p[0], res)
+    sy = _axis_scale(p[1], res)
+    sz = _axis_scale(p[2], res)
+    base = l * T
+    i000 = (base + _corner_index(cx, cy, cz, r1, T, dense)) * F
+    i100 = (base + _corner_index(cx + 1, cy, cz, r1, T, dense)) * F
+    i010 = (base + _corner_index(cx, cy + 1, cz, r1, T, dense)) * F
+    i110 = (base + _corner_index(cx + 1, cy + 1, cz, r1, T, dense)) * F
+    i001 = (base + _corner_index(cx, cy, cz + 1, r1, T, dense)) * F
+    i101 = (base + _corner_index(cx + 1, cy, cz + 1, r1, T, dense)) * F
+    i011 = (base + _corner_index(cx, cy + 1, cz + 1, r1, T, dense)) * F
+    i111 = (base + _corner_index(cx + 1, cy + 1, cz + 1, r1, T, dense)) * F
+    w000 = gx * gy * gz
+    w100 = fx * gy * gz
+    w010 = gx * fy * gz
+    w110 = fx * fy * gz
+    w001 = gx * gy * fz
+    w101 = fx * gy * fz
+    w011 = gx * fy * fz
+    w111 = fx * fy * fz
+    col = l * F
+    for f in range(F):
+        t000 = table[i000 + f]
+        t100 = table[i100 + f]
+        t010 = table[i010 + f]
+        t110 = table[i110 + f]
+        t001 = table[i001 + f]
+        t101 = table[i101 + f]
+        t011 = table[i011 + f]
+        t111 = table[i111 + f]
+        out[n, col + f] = (
+            w000 * t000 + w100 * t100 + w010 * t010 + w110 * t110
+            + w001 * t001 + w101 * t101 + w011 * t011 + w111 * t111
+        )
+        dx = gy * gz * (t100 - t000) + fy * gz * (t110 - t010) + gy * fz * (t101 - t001) + fy * fz * (t111 - t011)
+        dy = gx * gz * (t010 - t000) + fx * gz * (t110 - t100) + gx * fz * (t011 - t001) + fx * fz * (t111 - t101)
+        dz = gx * gy * (t001 - t000) + fx * gy * (t101 - t100) + gx * fy * (t011 - t010) + fx * fy * (t111 - t110)
+        jac[n, col + f] = wp.vec3(dx * sx, dy * sy, dz * sz)
+
+
+@wp.kernel
+def _hash_jac_bwd_kernel(
+    u: wp.array(dtype=wp.vec3),  # [N]
+    table: wp.array(dtype=float),  # [L*T*F] flat
+    levels: wp.array2d(dtype=wp.int32),  # [L, 2] (res, dense)
+    n_active: int,
+    T: int,
+    F: int,
+    grad_out: wp.array2d(dtype=float),  # [N, L*F] dL/dfeats (unused if not has_gout)
+    grad_jac: wp.array2d(dtype=wp.vec3),  # [N, L*F] dL/djac (unused if not has_gjac)
+    has_gout: int,
+    has_gjac: int,
+    need_table: int,
+    need_u: int,
+    grad_table: wp.array(dtype=float),  # [L*T*F] flat, zero-initialised (unused if not need_table)
+    grad_u: wp.array(dtype=wp.vec3),  # [N], zero-initialised (unused if not need_u)
+):
+    # dL/dtable[c, f] = w_c g_f + sum_k s_k (d w_c / d f_k) G_fk   (g = dL/dfeats, G = dL/djac)
+    # dL/du_k         = sum_f jac_fk g_f                            (d jac / d u is dropped)
+    tid = wp.tid()
+    n = tid // n_active
+    l = tid - n * n_active
+    res = levels[l, 0]
+    dense = levels[l, 1]
+    r1 = res + 1
+    p = u[n]
+    cx, fx = _cell(p[0], res)
+    cy, fy = _cell(p[1], res)
+    cz, fz = _cell(p[2], res)
+    gx = 1.0 - fx
+    gy = 1.0 - fy
+    gz = 1.0 - fz
+    sx = _axis_scale(p[0], res)
+    sy = _axis_scale(p[1], res)
+    sz = _axis_scale(p[2], res)
+    base = l * T
+    i000 = (base + _corner_index(cx, cy, cz, r1, T, dense)) * F
+    i100 = (base + _corner_index(cx + 1, cy, cz, r1, T, dense)) * F
+    i010 = (base + _corner_index(cx, cy + 1, cz, r1, T, dense)) * F
+    i110 = (base + _corner_index(cx + 1, cy + 1, cz, r1, T, dense)) * F
+    i001 = (base + _corner_index(cx, cy, cz + 1, r1, T, dense)) * F
+    i101 = (base + _corner_index(cx + 1, cy, cz + 1, r1, T, dense)) * F
+    i011 = (base + _corner_index(cx, cy + 1, cz + 1, r1, T, dense)) * F
+    i111 = (base + _corner_index(cx + 1, cy + 1, cz + 1, r1, T, dense)) * F
+    col = l * F
+    if need_table != 0:
+        w000 = gx * gy * gz
+        w100 = fx * gy * gz
+        w010 = gx * fy * gz
+        w110 = fx * fy * gz
+        w001 = gx * gy * fz
+        w101 = fx * gy * fz
+        w011 = gx * fy * fz
+        w111 = fx * fy * fz
+        for f in range(F):
+            g = float(0.0)
+            if has_gout != 0:
+                g = grad_out[n, col + f]
+            a = float(0.0)
+            b = float(0.0)
+            c = float(0.0)
+            if has_gjac != 0:
+                gj = grad_jac[n, col + f]
+                a = gj[0] * sx
+                b = gj[1] * sy
+                c = gj[2] * sz
+            wp.atomic_add(grad_table, i000 + f, w000 * g - a * gy * gz - b * gx * gz - c * gx * gy)
+            wp.atomic_add(grad_table, i100 + f, w100 * g + a * gy * gz - b * fx * gz - c * fx * gy)
+            wp.atomic_add(grad_table, i010 + f, w010 * g - a * fy * gz + b * gx * gz - c * gx * fy)
+            wp.atomic_add(grad_table, i110 + f, w110 * g + a * fy * gz + b * fx * gz - c * fx * fy)
+            wp.atomic_add(grad_table, i001 + f, w001 * g - a * gy * fz - b * gx * fz + c * gx * gy)
+            wp.atomic_add(grad_table, i101 + f, w101 * g + a * gy * fz - b * fx * fz + c * fx * gy)
+            wp.atomic_add(grad_table, i011 + f, w011 * g - a * fy * fz + b * gx * fz + c * gx * fy)
+            wp.atomic_add(grad_table, i111 + f, w111 * g + a * fy * fz + b * fx * fz + c * fx * fy)
+    if need_u != 0 and has_gout != 0:
+        # s_c = <grad_out, table[corner c]>, then jac^T grad_out as in _hash_bwd_kernel
+        s000 = float(0.0)
+        s100 = float(0.0)
+        s010 = float(0.0)
+        s110 = float(0.0)
+        s001 = float(0.0)
+        s101 = float(0.0)
+        s011 = float(0.0)
+        s111 = float(0.0)
+        for f in range(F):
+            g = grad_out[n, col + f]
+            s000 += g * table[i000 + f]
+            s100 += g * table[i100 + f]
+            s010 += g * table[i010 + f]
+            s110 += g * table[i110 + f]
+            s001 += g * table[i001 + f]
+            s101 += g * table[i101 + f]
+            s011 += g * table[i011 + f]
+            s111 += g * table[i111 + f]
+        dx = (gy * gz * (s100 - s000) + fy * gz * (s110 - s010) + gy * fz * (s101 - s001) + fy * fz * (s111 - s011))
+        dy = (gx * gz * (s010 - s000) + fx * gz * (s110 - s100) + gx * fz * (s011 - s001) + fx * fz * (s111 - s101))
+        dz = (gx * gy * (s001 - s000) + fx * gy * (s101 - s100) + gx * fy * (s011 - s010) + fx * fy * (s111 - s110))
+        wp.atomic_add(grad_u, n, wp.vec3(dx * sx, dy * sy, dz * sz))
+
+
 # ----------------------------------------------------------------------------- wrappers
 
 _level_cache: dict = {}
@@ -289,14 +473,14 @@ def _n_active(cfg: HashGridConfig, active_levels: int | None) -> int:
     return max(0, min(int(active_levels), cfg.levels))
 
 
-def _check(u: torch.Tensor, table: torch.Tensor, cfg: HashGridConfig) -> None:
+def _check(u: torch.Tensor, table: torch.Tensor, cfg: HashGridConfig, op: str = "hash_encode") -> None:
     if u.dim() != 2 or u.shape[1] != 3:
-        raise ValueError(f"hash_encode: u must be [N, 3], got {tuple(u.shape)}")
+        raise ValueError(f"{op}: u must be [N, 3], got {tuple(u.shape)}")
     want = (cfg.levels, cfg.table_size, cfg.features)
     if tuple(table.shape) != want:
-        raise ValueError(f"hash_encode: table must be {list(want)} for this config, got {list(table.shape)}")
+        raise ValueError(f"{op}: table must be {list(want)} for this config, got {list(table.shape)}")
     if u.device != table.device:
-        raise ValueError(f"hash_encode: u on {u.device} but table on {table.device}")
+        raise ValueError(f"{op}: u on {u.device} but table on {table.device}")
 
 
 class _HashEncode(torch.autograd.Function):
@@ -367,6 +551,99 @@ def hash_encode(
     if cfg.levels * cfg.table_size * cfg.features >= 2 ** 31:
         raise ValueError("hash_encode: L*T*F must stay below 2^31 (int32 flat indices)")
     return _HashEncode.apply(u, table, cfg, _n_active(cfg, active_levels))
+
+
+class _HashEncodeJac(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, u, table, cfg, n_active):
+        N = u.shape[0]
+        L, T, F = cfg.levels, cfg.table_size, cfg.features
+        u_c = u.detach().contiguous()
+        t_c = table.detach().contiguous()
+        levels = _level_table(cfg, u.device)
+        out = torch.zeros((N, L * F), dtype=torch.float32, device=u.device)
+        jac = torch.zeros((N, L * F, 3), dtype=torch.float32, device=u.device)
+        if N > 0 and n_active > 0:
+            launch(_hash_jac_fwd_kernel, N * n_active,
+                   [to_wp(u_c, dtype=wp.vec3), to_wp(t_c.view(-1)), to_wp(levels), n_active, T, F],
+                   ref=u, outputs=[to_wp(out), to_wp(jac, dtype=wp.vec3)])
+        ctx.save_for_backward(u_c, t_c)
+        ctx.cfg = cfg
+        ctx.n_active = n_active
+        ctx.set_materialize_grads(False)  # an unused output (often jac's) costs nothing
+        return out, jac
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, grad_out, grad_jac):
+        u_c, t_c = ctx.saved_tensors
+        cfg, n_active = ctx.cfg, ctx.n_active
+        need_u = ctx.needs_input_grad[0] and grad_out is not None  # dL/du = jac^T dL/dfeats only
+        need_table = ctx.needs_input_grad[1] and (grad_out is not None or grad_jac is not None)
+        N = u_c.shape[0]
+        grad_u = torch.zeros_like(u_c) if ctx.needs_input_grad[0] else None
+        grad_table = torch.zeros_like(t_c) if ctx.needs_input_grad[1] else None
+        if N > 0 and n_active > 0 and (need_u or need_table):
+            dev = u_c.device
+            dummy = torch.zeros((1,), dtype=torch.float32, device=dev)
+            dummy2 = torch.zeros((1, 1), dtype=torch.float32, device=dev)
+            dummy_vec = torch.zeros((1, 3), dtype=torch.float32, device=dev)
+            dummy_jac = torch.zeros((1, 1, 3), dtype=torch.float32, device=dev)
+            go = dummy2 if grad_out is None else grad_out.float().contiguous()
+            gj = dummy_jac if grad_jac is None else grad_jac.float().contiguous()
+            gt_wp = to_wp(grad_table.view(-1)) if need_table else to_wp(dummy)
+            gu_wp = to_wp(grad_u, dtype=wp.vec3) if need_u else to_wp(dummy_vec, dtype=wp.vec3)
+            launch(_hash_jac_bwd_kernel, N * n_active,
+                   [to_wp(u_c, dtype=wp.vec3), to_wp(t_c.view(-1)), to_wp(_level_table(cfg, dev)),
+                    n_active, cfg.table_size, cfg.features, to_wp(go), to_wp(gj, dtype=wp.vec3),
+                    int(grad_out is not None), int(grad_jac is not None), int(need_table), int(need_u)],
+                   ref=u_c, outputs=[gt_wp, gu_wp])
+        return grad_u, grad_table, None, None
+
+
+def hash_encode_jac(
+    u: torch.Tensor,  # [N, 3] float32 in [0, 1]^3 (clamped)
+    table: torch.Tensor,  # [L, T, F] float32
+    cfg: HashGridConfig,
+    active_levels: int | None = None,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Hash encoding and its spatial Jacobian from one Warp kernel (for analytic SDF normals).
+
+    ``feats`` equals :func:`hash_encode`'s output bit for bit. ``jac[n, l*F + f, k]`` is
+    d feats[n, l*F + f] / d u[n, k] = res_l * sum_c (d w_c / d frac_k) table[l, c, f] over the
+    8 cell corners c (trilinear weights w_c); it is 0 on an axis where u lies outside [0, 1]
+    (the clamp is active; u = 0 and u = 1 themselves count as inside, like torch's clamp),
+    and 0 for levels >= ``active_levels``. At a cell face the derivative is the one-sided one
+    of the cell that holds u (u * res = integer k belongs to cell k, and u = 1 to the last).
+
+    Gradients (one Warp kernel): the table gets w_c dL/dfeats + sum_k res_l (d w_c / d frac_k)
+    dL/djac_k at each corner entry; u gets jac^T dL/dfeats only. The second-order term
+    dL/djac . d jac / d u is dropped: a trilinear cell's second derivatives are the cross terms
+    d^2 w / d frac_j d frac_k (j != k) only (d^2 w / d frac_k^2 = 0), the SDF sample positions
+    are not trained, and where they are (pose refinement, through the ray origins and
+    directions) the first-order term, the photometric and SDF gradient, is what moves them;
+    the dropped term is the eikonal loss's pull through the grid's piecewise-bilinear
+    Hessian, which has no useful meaning for a pose.
+
+    Runs on u's device and torch's current stream, without host synchronisation.
+
+    Args:
+        u: [N, 3] float32 grid coordinates, (x_n + 1) / 2; clamped to [0, 1].
+        table: [L, T, F] float32 feature table.
+        cfg: grid configuration (L, T, F must match the table).
+        active_levels: levels >= this output zeros (features and Jacobian) and get no
+            gradient (None = all).
+
+    Returns:
+        feats: [N, L*F] float32, level-major (as :func:`hash_encode`).
+        jac: [N, L*F, 3] float32, d feats / d u.
+    """
+    _check(u, table, cfg, "hash_encode_jac")
+    if u.dtype != torch.float32 or table.dtype != torch.float32:
+        raise TypeError(f"hash_encode_jac (warp) needs float32 u and table, got {u.dtype} and {table.dtype}")
+    if cfg.levels * cfg.table_size * cfg.features >= 2 ** 31:
+        raise ValueError("hash_encode_jac: L*T*F must stay below 2^31 (int32 flat indices)")
+    return _HashEncodeJac.apply(u, table, cfg, _n_active(cfg, active_levels))
 
 
 # ----------------------------------------------------------------------------- torch twin
@@ -440,3 +717,69 @@ def hash_encode_torch(
         # keep the (all-zero) result on the autograd graph so backward() still works
         out = out + (table[:0].sum() + u[:0].sum())
     return out
+
+
+def hash_encode_jac_torch(
+    u: torch.Tensor,  # [N, 3] float in [0, 1]^3 (clamped)
+    table: torch.Tensor,  # [L, T, F] float
+    cfg: HashGridConfig,
+    active_levels: int | None = None,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Pure-torch twin of :func:`hash_encode_jac` (same maths, torch autograd).
+
+    The Jacobian is the explicit derivative of the trilinear weights (not autograd). Its
+    dependence on u goes through the detached cell fraction, so autograd drops
+    dL/djac . d jac / d u exactly as the Warp backward does; every other gradient (u through
+    ``feats``, the table through both outputs) is torch's own. Works in u's dtype (float64
+    for gradcheck), on any device.
+
+    Args:
+        u: [N, 3] grid coordinates; clamped to [0, 1].
+        table: [L, T, F] feature table.
+        cfg: grid configuration.
+        active_levels: levels >= this output zeros (None = all).
+
+    Returns:
+        feats: [N, L*F], level-major.
+        jac: [N, L*F, 3], d feats / d u.
+    """
+    _check(u, table, cfg, "hash_encode_jac")
+    N = u.shape[0]
+    T, F = cfg.table_size, cfg.features
+    n_active = _n_active(cfg, active_levels)
+    uc = u.clamp(0.0, 1.0)
+    inside = ((u >= 0.0) & (u <= 1.0)).to(u.dtype).detach()  # d clamp / d u, per axis
+    outs, jacs = [], []
+    for l, res in enumerate(cfg.resolutions()):
+        if l >= n_active:
+            outs.append(table.new_zeros((N, F)))
+            jacs.append(table.new_zeros((N, F, 3)))
+            continue
+        p = uc * res  # [N, 3]
+        c = torch.floor(p).clamp(max=res - 1).detach()  # u = 1 stays in the last cell
+        frac = p - c  # d frac / d u = res
+        fd = frac.detach()
+        scale = inside * res  # [N, 3]
+        ci = c.long()
+        feat, jac = 0.0, 0.0
+        for dz in (0, 1):
+            for dy in (0, 1):
+                for dx in (0, 1):
+                    # weights (differentiable in u) and their frac-derivatives (constants in u)
+                    a = [frac[:, k] if d else 1.0 - frac[:, k] for k, d in enumerate((dx, dy, dz))]
+                    b = [fd[:, k] if d else 1.0 - fd[:, k] for k, d in enumerate((dx, dy, dz))]
+                    sg = [1.0 if d else -1.0 for d in (dx, dy, dz)]
+                    dw = torch.stack([sg[0] * b[1] * b[2], sg[1] * b[0] * b[2], sg[2] * b[0] * b[1]], 1)  # [N, 3]
+                    idx = hash_index_torch(ci[:, 0] + dx, ci[:, 1] + dy, ci[:, 2] + dz, res, T)
+                    entry = table[l][idx]  # [N, F]
+                    feat = feat + (a[0] * a[1] * a[2])[:, None] * entry
+                    jac = jac + entry[:, :, None] * (dw * scale)[:, None, :]
+        outs.append(feat)
+        jacs.append(jac)
+    out = torch.cat(outs, dim=1)
+    jac = torch.cat(jacs, dim=1)
+    if n_active == 0:
+        # keep the (all-zero) results on the autograd graph so backward() still works
+        z = table[:0].sum() + u[:0].sum()
+        out, jac = out + z, jac + z
+    return out, jac

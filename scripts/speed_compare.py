@@ -27,6 +27,9 @@ budget (its cosine lr and inv_s-floor schedules span that budget, so an early bu
 early-schedule model). The baseline keeps the paper's step-based schedule (lr warm-up 5000
 steps, ...), which is what "the paper's method for the same wall-clock time" means.
 
+fastneus's SDF gradient follows its config (`--set sdf_grad=analytic` for the fused
+features + Jacobian path, default fd: 4 finite-difference taps).
+
 --breakdown (always on with --device cuda) re-does fastneus training steps phase by phase,
 with a device synchronisation between phases, after the comparison run (the trained state):
 median ms per phase over --breakdown-steps steps; the real trainer is not instrumented.
@@ -214,7 +217,23 @@ class PhaseTimer:
 
 
 def _sdf_and_grad_phased(field, x: torch.Tensor, pt: PhaseTimer):
-    """``SDFField.sdf_and_grad`` split into hash encoding and MLP phases (same maths)."""
+    """``SDFField.sdf_and_grad`` split into hash encoding and MLP phases (same maths).
+
+    With ``sdf_grad=analytic`` the hash phase is the fused features + Jacobian kernel and the
+    MLP phase holds the MLP forward, its input gradient (autograd, graph kept) and jac^T g.
+    """
+    if getattr(field, "sdf_grad", "fd") == "analytic":
+        feats, jac = field.encode_jac(((x + 1.0) * 0.5).contiguous(), field.table, field.grid_cfg,
+                                      field.active_levels)
+        pt.lap("hash encoding")
+        net_in = torch.cat([x, feats], dim=-1)
+        if not net_in.requires_grad:
+            net_in = net_in.detach().requires_grad_()
+        out = field.sdf_net(net_in)
+        (g,) = torch.autograd.grad(out[:, 0].sum(), net_in, create_graph=True)
+        grad = g[:, :3] + 0.5 * torch.bmm(g[:, None, 3:], jac)[:, 0]
+        pt.lap("MLPs")
+        return out[:, 0], out[:, 1:], grad
     n = x.shape[0]
     eps = field.normal_eps()
     taps = x[None, :, :] + eps * field._tetra[:, None, :]

@@ -74,3 +74,27 @@ def test_speed_compare_wallclock_cpu(tiny_scene, tmp_path):
     assert row["peak_rss_mb"] > 100 and row["mesh_detail"]["resolution"] == 24
     md = (out / "wallclock-cpu.md").read_text()
     assert "| phase | 1 s #0 |" in md and "**mesh_ready_s**" in md and "Mesh extraction detail" in md
+
+
+@pytest.mark.parametrize("mode", ["fd", "analytic"])
+def test_phased_sdf_and_grad_matches_field(mode):
+    """The breakdown's phase-split SDF gradient is the field's own (both sdf_grad modes)."""
+    import torch
+
+    sys.path.insert(0, str(ROOT / "scripts"))
+    try:
+        import speed_compare
+    finally:
+        sys.path.pop(0)
+    from fastneus.config import load_config
+    from fastneus.field.model import SDFField
+
+    cfg = load_config("cpu-quick", [f"sdf_grad={mode}", "log2_table=12", "levels=4", "finest_res=64"])
+    field = SDFField(cfg, "cpu")
+    with torch.no_grad():
+        field.table.mul_(1e3)
+        field.sdf_net[0].weight[:, 3:].normal_()
+    x = torch.rand(257, 3) * 2 - 1
+    s, geo, g, _ = field.sdf_and_grad(x)
+    s2, geo2, g2 = speed_compare._sdf_and_grad_phased(field, x, speed_compare.PhaseTimer("cpu"))
+    assert torch.allclose(s, s2) and torch.allclose(geo, geo2) and torch.allclose(g, g2, rtol=1e-5, atol=1e-5)

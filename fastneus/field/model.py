@@ -1,8 +1,11 @@
 """The neural field: hash-grid SDF + small torch MLPs (geometry and colour D).
 
 Geometry: f(x) = MLP([x, hash(x)]) with Softplus(beta=100) and a sphere initialisation.
-Normals are finite differences through the hash grid (4-tap tetrahedron), so the
-eikonal loss needs only first-order gradients through the Warp kernels.
+Normals (``sdf_grad``): ``fd`` = finite differences through the hash grid (4-tap
+tetrahedron), so the eikonal loss needs only first-order gradients through the Warp
+kernels; ``analytic`` = the hash features' spatial Jacobian from one fused kernel
+(``hash_encode_jac``) chained with the MLP's input gradient (torch double backward for
+the MLP only), on 1x instead of 5x the points.
 """
 from __future__ import annotations
 
@@ -34,6 +37,10 @@ class SDFField(nn.Module):
         self.resolutions = self.grid_cfg.resolutions()
         self.table = nn.Parameter(init_table(self.grid_cfg, device))
         self.encode = get_op("hash_encode", cfg.backend)
+        self.encode_jac = get_op("hash_encode_jac", cfg.backend)
+        self.sdf_grad = getattr(cfg, "sdf_grad", "fd")
+        if self.sdf_grad not in ("fd", "analytic"):
+            raise ValueError(f"sdf_grad must be 'fd' or 'analytic', got {self.sdf_grad!r}")
         n_feat = cfg.levels * cfg.features
 
         # geometry MLP: [x (3), hash features] -> [sdf, geo features]
@@ -120,14 +127,28 @@ class SDFField(nn.Module):
         return self.geometry(x)[:, 0]
 
     def sdf_and_grad(self, x: torch.Tensor, with_curvature: bool = False):
-        """SDF, geometric features and finite-difference gradient in one hash-grid call.
+        """SDF, geometric features and SDF gradient (``cfg.sdf_grad``: finite or analytic).
+
+        ``fd``: the centre and 4 tetrahedron taps go through the hash grid and MLP in one call
+        (5N points). ``analytic``: features and d feats / d u from one ``hash_encode_jac``
+        call and the MLP on the N points, grad = d MLP / d x + 0.5 jac^T d MLP / d feats.
+        In both, gradients reach the table, the MLP weights and (first-order) x from any
+        loss on the returned grad. Under ``torch.no_grad()`` the analytic gradient is still
+        computed (locally with grad enabled, no graph kept) and all outputs are detached.
+
+        ``with_curvature=True`` (the one-shot smoothness prior) evaluates the 4 tetrahedron
+        taps in either mode: the trilinear hash grid's analytic Laplacian is zero inside
+        cells and undefined on faces, so it carries no useful smoothness signal. In
+        ``analytic`` mode the returned grad is still the analytic one.
 
         Args:
-            x: [N, 3] float32.
+            x: [N, 3] float32 normalised positions.
             with_curvature: also return a Laplacian-like residual for a smoothness prior.
         Returns:
             sdf [N], geo [N, G], grad [N, 3], (curv [N] or None)
         """
+        if self.sdf_grad == "analytic":
+            return self._sdf_and_grad_analytic(x, with_curvature)
         n = x.shape[0]
         eps = self.normal_eps()
         taps = x[None, :, :] + eps * self._tetra[:, None, :]          # [4, N, 3]
@@ -138,6 +159,49 @@ class SDFField(nn.Module):
         curv = None
         if with_curvature:
             # mean of the tetrahedron taps minus the centre ~ eps^2/2 * Laplacian / 3
+            curv = (f_taps.mean(0) - sdf) / (eps * eps)
+        return sdf, geo, grad, curv
+
+    def geometry_and_grad(self, x: torch.Tensor):
+        """SDF network output and the analytic SDF gradient (the ``analytic`` mode's core).
+
+        The encoding takes u = (x + 1) / 2 unclamped: ``hash_encode_jac`` clamps it and
+        zeroes the Jacobian on clamped axes (d u / d x = 0 outside the box), so only the
+        MLP's direct x input contributes there. Needs grad mode (see :meth:`sdf_and_grad`).
+
+        Args:
+            x: [N, 3] float32 normalised positions.
+        Returns:
+            out [N, 1 + G] (sdf in column 0), grad [N, 3] with a graph to the table, the MLP
+            weights and x (create_graph), ready for the eikonal loss.
+        """
+        feats, jac = self.encode_jac(((x + 1.0) * 0.5).contiguous(), self.table, self.grid_cfg,
+                                     self.active_levels)                # [N, L*F], [N, L*F, 3]
+        net_in = torch.cat([x, feats], dim=-1)
+        if not net_in.requires_grad:  # frozen table and constant x: differentiate the MLP input anyway
+            net_in = net_in.detach().requires_grad_()
+        out = self.sdf_net(net_in)
+        (g,) = torch.autograd.grad(out[:, 0].sum(), net_in, create_graph=True)  # [N, 3 + L*F]
+        # d feats / d x = 0.5 jac (u = (x + 1) / 2); bmm form of einsum('nfk,nf->nk')
+        grad = g[:, :3] + 0.5 * torch.bmm(g[:, None, 3:], jac)[:, 0]
+        return out, grad
+
+    def _sdf_and_grad_analytic(self, x: torch.Tensor, with_curvature: bool):
+        n = x.shape[0]
+        if torch.is_grad_enabled():
+            out, grad = self.geometry_and_grad(x)
+        else:
+            # inference (mesh/normal renders under no_grad): autograd.grad needs a graph, so build
+            # one locally and drop it; every output comes back detached, as under no_grad
+            with torch.enable_grad():
+                out, grad = self.geometry_and_grad(x.detach())
+            out, grad = out.detach(), grad.detach()
+        sdf, geo = out[:, 0], out[:, 1:]
+        curv = None
+        if with_curvature:
+            eps = self.normal_eps()
+            taps = x[None, :, :] + eps * self._tetra[:, None, :]      # [4, N, 3]
+            f_taps = self.geometry(taps.reshape(-1, 3))[:, 0].reshape(4, n)
             curv = (f_taps.mean(0) - sdf) / (eps * eps)
         return sdf, geo, grad, curv
 
