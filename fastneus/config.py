@@ -87,10 +87,12 @@ class Config:
     inv_s_floor_start: float = 20.0    # to this value over the first inv_s_floor_frac of the run (end 0 = learned only)
     inv_s_floor_frac: float = 0.6
     normal_eps_min: float = 1e-3       # lower bound for the finite-difference step (normalised)
-    sdf_grad: str = "fd"               # SDF gradient (normals, eikonal): fd = 4-tap tetrahedron finite
-                                       # differences (hash grid + SDF MLP on 5x the points) | analytic =
-                                       # hash features and their d/dx from one kernel, MLP d/dinput by
-                                       # autograd (1x the points; the curvature prior still uses taps)
+    sdf_grad: str = "analytic"         # SDF gradient (normals, eikonal): analytic = hash features and
+                                       # their d/dx from one kernel, MLP d/dinput by autograd (1x the
+                                       # points; the curvature prior still uses taps) | fd = 4-tap
+                                       # tetrahedron finite differences (hash grid + SDF MLP on 5x the
+                                       # points). analytic: 10-18% more steps on GPU, 1.6x on CPU, equal or
+                                       # better Chamfer (docs/BENCHMARKS.md "Speed (issue 10)")
 
     # --- optimisation ---
     lr: float = 1e-2
