@@ -247,6 +247,9 @@ def _project_bwd(pos: wp.array(dtype=wp.vec3), offsets: wp.array(dtype=wp.int32)
             wp.atomic_add(d_sigma, c, accS[c])
 
 
+# Samples per CPU chunk at least, for a 1 x 1 blur (divided by the taps of larger blurs).
+MIN_CHUNK_SAMPLES = 4096
+
 def _check(pos, proj_K, proj_W, proj_pattern, patterns, blur, port) -> int:
     F, P = check_projection(proj_K, proj_W, proj_pattern)
     if blur.ndim != 2 or blur.shape[0] != P:
@@ -267,10 +270,13 @@ class _ProjectPattern(torch.autograd.Function):
                 pat_meta, n, port, use_att):
         S = pos.shape[0]
         out = torch.zeros((S, 3), dtype=torch.float32, device=pos.device)
-        _warp.launch(_project_fwd, S, [_wp(pos, wp.vec3), _wp(ray_index), _wp(ray_frame), _wp(proj_K, wp.mat33),
-                                       _wp(proj_W, mat34), _wp(proj_pattern), _wp(pat_buf), _wp(pat_meta, wp.vec3i),
-                                       _wp(blur), int(n), _wp(port), _wp(sigma.view(1, 3), wp.vec3), int(use_att)],
-                     pos, outputs=[_wp(out, wp.vec3)])
+        inputs = [_wp(pos, wp.vec3), _wp(ray_index), _wp(ray_frame), _wp(proj_K, wp.mat33), _wp(proj_W, mat34),
+                  _wp(proj_pattern), _wp(pat_buf), _wp(pat_meta, wp.vec3i), _wp(blur), int(n), _wp(port),
+                  _wp(sigma.view(1, 3), wp.vec3), int(use_att)]
+        # one thread per sample, writing only its own row of out
+        _warp.launch_chunked(_project_fwd, inputs, [_wp(out, wp.vec3)], pos,
+                             _warp.item_ranges(S, pos, MIN_CHUNK_SAMPLES // int(n) ** 2),
+                             sliced_in={0: (pos, wp.vec3), 1: (ray_index, None)}, sliced_out={0: (out, wp.vec3)})
         ctx.save_for_backward(pos, proj_W, blur, sigma, offsets, counts, ray_frame, proj_K, proj_pattern, pat_buf,
                               pat_meta, port)
         ctx.n, ctx.use_att = int(n), int(use_att)
@@ -288,12 +294,16 @@ class _ProjectPattern(torch.autograd.Function):
         d_W = torch.zeros_like(proj_W) if need[1] else torch.zeros((1,), device=dev)
         d_blur = torch.zeros_like(blur) if need[2] else torch.zeros((1,), device=dev)
         d_sigma = torch.zeros(3, device=dev)
-        _warp.launch(_project_bwd, offsets.shape[0],
-                     [_wp(pos, wp.vec3), _wp(offsets), _wp(counts), _wp(ray_frame), _wp(proj_K, wp.mat33),
-                      _wp(proj_W, mat34), _wp(proj_pattern), _wp(pat_buf), _wp(pat_meta, wp.vec3i), _wp(blur),
-                      ctx.n, _wp(port), _wp(sigma.view(1, 3), wp.vec3), ctx.use_att, _wp(_f32(g_q), wp.vec3),
-                      int(need[0]), int(need[1]), int(need[2]), int(need[3] and ctx.use_att)],
-                     pos, outputs=[_wp(d_pos, wp.vec3), _wp(d_W.view(-1)), _wp(d_blur.view(-1)), _wp(d_sigma)])
+        inputs = [_wp(pos, wp.vec3), _wp(offsets), _wp(counts), _wp(ray_frame), _wp(proj_K, wp.mat33),
+                  _wp(proj_W, mat34), _wp(proj_pattern), _wp(pat_buf), _wp(pat_meta, wp.vec3i), _wp(blur),
+                  ctx.n, _wp(port), _wp(sigma.view(1, 3), wp.vec3), ctx.use_att, _wp(_f32(g_q), wp.vec3),
+                  int(need[0]), int(need[1]), int(need[2]), int(need[3] and ctx.use_att)]
+        # one thread per ray: its samples' rows of d_pos are its own; W, blur and sigma are shared
+        _warp.launch_chunked(_project_bwd, inputs,
+                             [_wp(d_pos, wp.vec3), _wp(d_W.view(-1)), _wp(d_blur.view(-1)), _wp(d_sigma)], pos,
+                             _warp.ray_ranges(offsets, pos.shape[0], pos, MIN_CHUNK_SAMPLES // ctx.n ** 2),
+                             sliced_in={1: (offsets, None), 2: (counts, None), 3: (ray_frame, None)},
+                             shared={1: d_W.view(-1), 2: d_blur.view(-1), 3: d_sigma})
         return (d_pos if need[0] else None, d_W if need[1] else None, d_blur if need[2] else None,
                 d_sigma if need[3] else None) + (None,) * 11
 
@@ -531,9 +541,10 @@ class _LaserLight(torch.autograd.Function):
     @staticmethod
     def forward(ctx, pos, proj_W, ray_index, offsets, counts, ray_frame, laser_on, planes):
         out = torch.zeros((pos.shape[0], 3), dtype=torch.float32, device=pos.device)
-        _warp.launch(_laser_fwd, pos.shape[0], [_wp(pos, wp.vec3), _wp(ray_index), _wp(ray_frame),
-                                                _wp(proj_W, mat34), _wp(laser_on), _wp(planes)],
-                     pos, outputs=[_wp(out, wp.vec3)])
+        _warp.launch_chunked(_laser_fwd, [_wp(pos, wp.vec3), _wp(ray_index), _wp(ray_frame), _wp(proj_W, mat34),
+                                          _wp(laser_on), _wp(planes)], [_wp(out, wp.vec3)], pos,
+                             _warp.item_ranges(pos.shape[0], pos, MIN_CHUNK_SAMPLES),
+                             sliced_in={0: (pos, wp.vec3), 1: (ray_index, None)}, sliced_out={0: (out, wp.vec3)})
         ctx.save_for_backward(pos, proj_W, offsets, counts, ray_frame, laser_on, planes)
         return out
 
@@ -546,10 +557,12 @@ class _LaserLight(torch.autograd.Function):
         dev = pos.device
         d_pos = torch.zeros_like(pos) if need[0] else torch.zeros((1, 3), device=dev)
         d_W = torch.zeros_like(proj_W) if need[1] else torch.zeros((1,), device=dev)
-        _warp.launch(_laser_bwd, offsets.shape[0],
-                     [_wp(pos, wp.vec3), _wp(offsets), _wp(counts), _wp(ray_frame), _wp(proj_W, mat34),
-                      _wp(laser_on), _wp(planes), _wp(_f32(g_q), wp.vec3), int(need[0]), int(need[1])],
-                     pos, outputs=[_wp(d_pos, wp.vec3), _wp(d_W.view(-1))])
+        inputs = [_wp(pos, wp.vec3), _wp(offsets), _wp(counts), _wp(ray_frame), _wp(proj_W, mat34),
+                  _wp(laser_on), _wp(planes), _wp(_f32(g_q), wp.vec3), int(need[0]), int(need[1])]
+        _warp.launch_chunked(_laser_bwd, inputs, [_wp(d_pos, wp.vec3), _wp(d_W.view(-1))], pos,
+                             _warp.ray_ranges(offsets, pos.shape[0], pos, MIN_CHUNK_SAMPLES),
+                             sliced_in={1: (offsets, None), 2: (counts, None), 3: (ray_frame, None)},
+                             shared={1: d_W.view(-1)})
         return (d_pos if need[0] else None, d_W if need[1] else None) + (None,) * 6
 
 
