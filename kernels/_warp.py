@@ -22,6 +22,8 @@ from typing import Callable, Sequence
 import torch
 import warp as wp
 
+from . import THREADS_ENV
+
 _lock = threading.Lock()
 _initialised = False
 
@@ -147,7 +149,6 @@ def load_modules(modules, device: str, say=None) -> float:
 
 
 # ----------------------------------------------------------------------------- CPU threads
-THREADS_ENV = "FASTNEUS_THREADS"
 # Chunks per thread of a split launch: a few more chunks than threads let an idle thread
 # take over work from one that the OS has descheduled (the CPU is often shared).
 CHUNKS_PER_THREAD = 2

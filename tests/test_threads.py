@@ -315,3 +315,42 @@ def test_identity_blur_projection_equals_render_sampling_when_threaded():
 
     a, b = _run(once, 4)
     _same(a, b, f"seed {seed}", rtol=1e-5)
+
+
+# ----------------------------------------------------------------------------- configuration
+
+def test_cli_threads_option_header_and_run_json(small_scene, tmp_path, capsys, monkeypatch):
+    import json
+
+    from conftest import SMALL_RUN
+    from fastneus.cli import main
+
+    monkeypatch.setenv(_warp.THREADS_ENV, "2")  # --threads wins over the environment and the config key
+    saved = (_warp.get_threads(), torch.get_num_threads())
+    try:
+        run = tmp_path / "run"
+        assert main(["train", str(small_scene), "--out", str(run), "--device", "cpu", "--threads", "3",
+                     "threads=1"] + SMALL_RUN) == 0
+        out = capsys.readouterr().out
+        assert out.count("threads: 3 (asked for") == 1, out
+        assert json.loads((run / "run.json").read_text())["threads"] == 3
+        assert _warp.get_threads() == 3 and torch.get_num_threads() == 3
+        # without --threads: the config key, else the environment
+        assert main(["train", str(small_scene), "--out", str(run), "--device", "cpu", "--overwrite"] + SMALL_RUN) == 0
+        assert "threads: 2 (from FASTNEUS_THREADS" in capsys.readouterr().out
+        assert json.loads((run / "run.json").read_text())["threads"] == 2
+    finally:
+        _warp.set_threads(saved[0])
+        torch.set_num_threads(saved[1])
+
+
+@pytest.mark.parametrize("argv,needle", [(["--threads", "0"], "--threads"), (["threads=-1"], "threads"),
+                                         ([], "FASTNEUS_THREADS")])
+def test_bad_thread_counts_are_one_line(argv, needle, small_scene, tmp_path, capsys, monkeypatch):
+    from fastneus.cli import main
+
+    if not argv:
+        monkeypatch.setenv(_warp.THREADS_ENV, "many")
+    assert main(["train", str(small_scene), "--out", str(tmp_path / "r"), "--device", "cpu"] + argv) == 2
+    err = capsys.readouterr().err.strip()
+    assert needle in err and len(err.splitlines()) == 1, err
