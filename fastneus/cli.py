@@ -46,6 +46,23 @@ def add_device_arg(p: argparse.ArgumentParser) -> None:
     p.add_argument("--device", default=None, help="cpu or cuda (default: cuda when available, else cpu)")
 
 
+def add_threads_arg(p: argparse.ArgumentParser) -> None:
+    """Add the common ``--threads N`` option (the config key ``threads``; default: every CPU)."""
+    p.add_argument("--threads", type=int, default=None, metavar="N",
+                   help="CPU threads for the kernels and torch (default: the FASTNEUS_THREADS environment "
+                        "variable, else every CPU this process may use; same as threads=N)")
+
+
+def threads_override(args) -> list[str]:
+    """``["threads=N"]`` when ``--threads N`` was given (it wins over the config's key), else []."""
+    n = getattr(args, "threads", None)
+    if n is None:
+        return []
+    if n < 1:
+        raise FastneusError(f"must be >= 1, got {n}", field="--threads")
+    return [f"threads={n}"]
+
+
 class _Parser(argparse.ArgumentParser):
     """argparse with the one-line error convention (usage stays in ``--help``)."""
 

@@ -25,6 +25,8 @@ class Config:
     preset: str = "fewview"            # name of the preset this config came from (informational)
     backend: str = "warp"              # kernel backend: warp | torch (the twins; for comparison)
     seed: int = 0
+    threads: int = 0                   # CPU threads for the Warp kernels and torch (0 = auto: FASTNEUS_THREADS,
+                                       # else every CPU this process may run on); --threads on the CLI
     steps: int = 3000                  # optimisation steps (the run's length when time_budget is 0)
     time_budget: float = 0.0           # seconds of training; when > 0 it is the run's length (steps ignored)
                                        # and every schedule below is a fraction of it
@@ -250,6 +252,8 @@ def validate(cfg: Config, source: str = "config") -> None:
         raise FastneusError("min_rays must not exceed max_rays", file=source, field="min_rays")
     if cfg.shots_per_ray < 0:
         raise FastneusError(f"must be >= 0 (0 = all shots), got {cfg.shots_per_ray}", file=source, field="shots_per_ray")
+    if cfg.threads < 0:
+        raise FastneusError(f"must be >= 0 (0 = every CPU), got {cfg.threads}", file=source, field="threads")
     if cfg.min_views < 0:
         raise FastneusError(f"must be >= 0, got {cfg.min_views}", file=source, field="min_views")
     for k in _FRACTIONS:

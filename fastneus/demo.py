@@ -8,7 +8,7 @@ from __future__ import annotations
 import time
 from pathlib import Path
 
-from fastneus.cli import add_device_arg, resolve_device
+from fastneus.cli import add_device_arg, add_threads_arg, resolve_device, threads_override
 
 # (views, size, illumination, preset) per device kind
 DEMO_SETTINGS = {
@@ -68,7 +68,7 @@ def run_demo(out: Path, device: str, overrides: list[str] | None = None, console
 
 
 def _demo(args) -> int:
-    run_demo(Path(args.out), resolve_device(args.device), args.overrides)
+    run_demo(Path(args.out), resolve_device(args.device), list(args.overrides or []) + threads_override(args))
     return 0
 
 
@@ -78,5 +78,6 @@ def register(sub) -> None:
                                    "mesh, renders with/without the pattern, metrics and report.html.")
     p.add_argument("--out", default="fastneus-demo", help="output folder (default ./fastneus-demo)")
     add_device_arg(p)
+    add_threads_arg(p)
     p.add_argument("overrides", nargs="*", metavar="key=value", help="config overrides, e.g. steps=300")
     p.set_defaults(func=_demo)

@@ -170,12 +170,14 @@ def train_scene(scene, cfg: Config, out: Path, device: str, console=None, resume
         else:
             clear_run_folder(out)  # inputs are valid by now: an earlier run is replaced, not mixed in
     if console is not None:
+        console.print(trainer.threads_note)
         console.print(trainer.masks_note)
         console.print(trainer.bg_note)
         length = f"time budget {cfg.time_budget:g} s" if cfg.time_budget > 0 else f"{cfg.steps} steps"
         console.print(f"run length: {length}; every schedule is a fraction of it")
     atomic_write_json(out / "run.json", {"scene": str(scene.root), "device": str(device), "preset": cfg.preset,
-                                         "masks": trainer.masks_note, "background_prior": trainer.bg_note})
+                                         "threads": trainer.threads, "masks": trainer.masks_note,
+                                         "background_prior": trainer.bg_note})
     with stop_on_signal(trainer, out):
         last = trainer.fit(final_save=not finish)  # finish_run saves it right after mesh.ply
     if console is not None and last:

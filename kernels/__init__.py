@@ -22,6 +22,7 @@ _OPS = {
 }
 
 BACKENDS = ("warp", "torch")
+THREADS_ENV = "FASTNEUS_THREADS"  # the automatic thread count's override (kernels/_warp.py reads it)
 
 
 def get_op(name: str, backend: str = "warp"):
@@ -58,3 +59,30 @@ def prepare_kernels(device, say=None, backend: str = "warp", ops=("hash_encode",
         m = importlib.import_module(f"{__name__}.{_OPS[o]}")
         mods += m.warp_modules() if hasattr(m, "warp_modules") else [m]
     return load_modules(list(dict.fromkeys(mods)), str(device), say=say, report=report)
+
+
+def configure_threads(requested: int | None = 0, torch_threads: bool = True) -> tuple[int, str]:
+    """Set the CPU threads of the Warp ops (and torch's intra-op threads) for this process.
+
+    Args:
+        requested: threads (>= 1), or 0 / None for the automatic choice: the environment
+            variable ``FASTNEUS_THREADS`` when set, else every CPU in this process's
+            affinity mask (``os.sched_getaffinity``).
+        torch_threads: also ``torch.set_num_threads`` to the same count.
+
+    Returns:
+        (threads, note): the resolved count and a one-line explanation for the run header.
+    """
+    from . import _warp
+
+    if requested:
+        n, why = int(requested), "asked for"
+    else:
+        n, why = _warp.default_threads()
+        why = f"from {why[4:]}" if why.startswith("env ") else f"all {_warp.available_cpus()} CPUs this process may use"
+    _warp.set_threads(n)
+    if torch_threads:
+        import torch
+
+        torch.set_num_threads(n)
+    return n, f"threads: {n} ({why}; Warp kernels{' and torch' if torch_threads else ''})"

@@ -18,6 +18,7 @@ from dataclasses import dataclass
 import torch
 import warp as wp
 
+from . import _warp
 from ._warp import init, launch, to_wp
 
 init()
@@ -27,6 +28,9 @@ wp.set_module_options({"enable_backward": False})
 _PRIME_Y = 2654435761
 _PRIME_Z = 805459861
 _MAX_FEATURES = 8
+# (point, level) pairs per CPU chunk at least: ~4 ms of backward work, far above the ~50 us
+# that one more launch costs.
+_MIN_CHUNK_WORK = 16384
 
 
 @dataclass(frozen=True)
@@ -135,16 +139,16 @@ def _hash_fwd_kernel(
     u: wp.array(dtype=wp.vec3),  # [N]
     table: wp.array(dtype=float),  # [L*T*F] flat
     levels: wp.array2d(dtype=wp.int32),  # [L, 2] (res, dense)
-    n_levels: int,  # L (column stride of out is L*F)
-    n_active: int,  # levels launched, <= L
+    l0: int,  # first level of this launch
+    n_lv: int,  # levels of this launch (l0 .. l0 + n_lv - 1, all active)
     T: int,
     F: int,
     out: wp.array2d(dtype=float),  # [N, L*F], zero-initialised
 ):
-    # One thread per (point, active level); level fastest so that writes to out coalesce.
+    # One thread per (point, level); level fastest so that writes to out coalesce.
     tid = wp.tid()
-    n = tid // n_active
-    l = tid - n * n_active
+    n = tid // n_lv
+    l = l0 + tid - n * n_lv
     res = levels[l, 0]
     dense = levels[l, 1]
     r1 = res + 1
@@ -185,7 +189,8 @@ def _hash_bwd_kernel(
     u: wp.array(dtype=wp.vec3),  # [N]
     table: wp.array(dtype=float),  # [L*T*F] flat
     levels: wp.array2d(dtype=wp.int32),  # [L, 2] (res, dense)
-    n_active: int,
+    l0: int,  # first level of this launch
+    n_lv: int,  # levels of this launch
     T: int,
     F: int,
     grad_out: wp.array2d(dtype=float),  # [N, L*F]
@@ -194,9 +199,11 @@ def _hash_bwd_kernel(
     grad_table: wp.array(dtype=float),  # [L*T*F] flat, zero-initialised (unused if not need_table)
     grad_u: wp.array(dtype=wp.vec3),  # [N], zero-initialised (unused if not need_u)
 ):
+    # Serial order per table entry: points ascending (a launch over all points of a level
+    # adds in the same order whatever the level grouping, so the sum is bit-identical).
     tid = wp.tid()
-    n = tid // n_active
-    l = tid - n * n_active
+    n = tid // n_lv
+    l = l0 + tid - n * n_lv
     res = levels[l, 0]
     dense = levels[l, 1]
     r1 = res + 1
@@ -290,7 +297,8 @@ def _hash_jac_fwd_kernel(
     u: wp.array(dtype=wp.vec3),  # [N]
     table: wp.array(dtype=float),  # [L*T*F] flat
     levels: wp.array2d(dtype=wp.int32),  # [L, 2] (res, dense)
-    n_active: int,  # levels launched, <= L
+    l0: int,  # first level of this launch
+    n_lv: int,  # levels of this launch (l0 .. l0 + n_lv - 1, all active)
     T: int,
     F: int,
     out: wp.array2d(dtype=float),  # [N, L*F], zero-initialised
@@ -299,8 +307,8 @@ def _hash_jac_fwd_kernel(
     # One thread per (point, active level), as _hash_fwd_kernel; the features are computed with
     # the same operations in the same order, so they equal hash_encode's bit for bit.
     tid = wp.tid()
-    n = tid // n_active
-    l = tid - n * n_active
+    n = tid // n_lv
+    l = l0 + tid - n * n_lv
     res = levels[l, 0]
     dense = levels[l, 1]
     r1 = res + 1
@@ -356,7 +364,8 @@ def _hash_jac_bwd_kernel(
     u: wp.array(dtype=wp.vec3),  # [N]
     table: wp.array(dtype=float),  # [L*T*F] flat
     levels: wp.array2d(dtype=wp.int32),  # [L, 2] (res, dense)
-    n_active: int,
+    l0: int,  # first level of this launch
+    n_lv: int,  # levels of this launch
     T: int,
     F: int,
     grad_out: wp.array2d(dtype=float),  # [N, L*F] dL/dfeats (unused if not has_gout)
@@ -371,8 +380,8 @@ def _hash_jac_bwd_kernel(
     # dL/dtable[c, f] = w_c g_f + sum_k s_k (d w_c / d f_k) G_fk   (g = dL/dfeats, G = dL/djac)
     # dL/du_k         = sum_f jac_fk g_f                            (d jac / d u is dropped)
     tid = wp.tid()
-    n = tid // n_active
-    l = tid - n * n_active
+    n = tid // n_lv
+    l = l0 + tid - n * n_lv
     res = levels[l, 0]
     dense = levels[l, 1]
     r1 = res + 1
@@ -493,9 +502,16 @@ class _HashEncode(torch.autograd.Function):
         levels = _level_table(cfg, u.device)
         out = torch.zeros((N, L * F), dtype=torch.float32, device=u.device)
         if N > 0 and n_active > 0:
-            launch(_hash_fwd_kernel, N * n_active,
-                   [to_wp(u_c, dtype=wp.vec3), to_wp(t_c.view(-1)), to_wp(levels), L, n_active, T, F],
-                   ref=u, outputs=[to_wp(out)])
+            t_wp, lv_wp = to_wp(t_c.view(-1), ctype=True), to_wp(levels, ctype=True)
+
+            def fwd(a: int, b: int):
+                # rows a..b of u and out: every thread writes only its own point's row
+                inp = [to_wp(u_c[a:b], dtype=wp.vec3, ctype=True), t_wp, lv_wp, 0, n_active, T, F]
+                outp = [to_wp(out[a:b], ctype=True)]
+                return lambda: launch(_hash_fwd_kernel, (b - a) * n_active, inp, ref=u, outputs=outp)
+
+            ranges = _warp.split(N, _warp.n_chunks(N * n_active, u, _MIN_CHUNK_WORK))
+            _warp.run_tasks([fwd(a, b) for a, b in ranges], key=_hash_fwd_kernel)
         ctx.save_for_backward(u_c, t_c)
         ctx.cfg = cfg
         ctx.n_active = n_active
@@ -514,15 +530,54 @@ class _HashEncode(torch.autograd.Function):
             go = grad_out.contiguous()
             if go.dtype != torch.float32:
                 go = go.float()
-            dummy_vec = torch.zeros((1, 3), dtype=torch.float32, device=u_c.device)
-            dummy = torch.zeros((1,), dtype=torch.float32, device=u_c.device)
-            gt_wp = to_wp(grad_table.view(-1)) if need_table else to_wp(dummy)
-            gu_wp = to_wp(grad_u, dtype=wp.vec3) if need_u else to_wp(dummy_vec, dtype=wp.vec3)
-            launch(_hash_bwd_kernel, N * n_active,
-                   [to_wp(u_c, dtype=wp.vec3), to_wp(t_c.view(-1)), to_wp(_level_table(cfg, u_c.device)),
-                    n_active, cfg.table_size, cfg.features, to_wp(go), int(need_table), int(need_u)],
-                   ref=u_c, outputs=[gt_wp, gu_wp])
+            _backward_launches(u_c, t_c, go, cfg, n_active, grad_table, grad_u)
         return grad_u, grad_table, None, None
+
+
+def _backward_launches(u_c, t_c, go, cfg: HashGridConfig, n_active: int, grad_table, grad_u) -> None:
+    """Launch the backward over (level group x point range) chunks on the CPU threads.
+
+    Chunks of different level groups write disjoint parts of the table gradient; chunks of
+    different point ranges write disjoint rows of the u gradient. Where two chunks could
+    add to the same entry, all but the first write a private zeroed buffer, summed into the
+    output afterwards in a fixed order. With one point range (the usual case: at least
+    ``2 * threads`` active levels) the table gradient is bit-identical to one launch.
+    """
+    dev = u_c.device
+    N = u_c.shape[0]
+    need_table, need_u = grad_table is not None, grad_u is not None
+    want = _warp.n_chunks(N * n_active, u_c, _MIN_CHUNK_WORK)
+    # level groups first: they need no table-gradient buffers
+    groups = max(1, min(n_active, want)) if need_table else 1
+    parts = -(-want // groups)
+    level_groups = _warp.split(n_active, groups)
+    point_ranges = _warp.split(N, parts)
+    dummy_vec = torch.zeros((1, 3), dtype=torch.float32, device=dev)
+    dummy = torch.zeros((1,), dtype=torch.float32, device=dev)
+    # table-gradient buffer per point range, u-gradient buffer per level group (index 0: the outputs)
+    gt_bufs = [grad_table.view(-1) if need_table else dummy] + [
+        torch.zeros_like(grad_table).view(-1) if need_table else dummy for _ in point_ranges[1:]]
+    gu_bufs = [grad_u if need_u else dummy_vec] + [
+        torch.zeros_like(grad_u) if need_u else dummy_vec for _ in level_groups[1:]]
+    t_wp, lv_wp = to_wp(t_c.view(-1), ctype=True), to_wp(_level_table(cfg, dev), ctype=True)
+    gt_wp = [to_wp(b, ctype=True) for b in gt_bufs]
+
+    def task(g: int, p: int):
+        (l0, l1), (a, b) = level_groups[g], point_ranges[p]
+        gu = gu_bufs[g]
+        gu_wp = to_wp(gu[a:b] if need_u else gu, dtype=wp.vec3, ctype=True)
+        inp = [to_wp(u_c[a:b], dtype=wp.vec3, ctype=True), t_wp, lv_wp, l0, l1 - l0, cfg.table_size, cfg.features,
+               to_wp(go[a:b], ctype=True), int(need_table), int(need_u)]
+        return lambda: launch(_hash_bwd_kernel, (b - a) * (l1 - l0), inp, ref=u_c, outputs=[gt_wp[p], gu_wp])
+
+    _warp.run_tasks([task(g, p) for p in range(len(point_ranges)) for g in range(len(level_groups))],
+                    key=_hash_bwd_kernel)
+    if need_table:
+        for extra in gt_bufs[1:]:
+            grad_table.view(-1).add_(extra)
+    if need_u:
+        for extra in gu_bufs[1:]:
+            grad_u.add_(extra)
 
 
 def hash_encode(
@@ -564,9 +619,16 @@ class _HashEncodeJac(torch.autograd.Function):
         out = torch.zeros((N, L * F), dtype=torch.float32, device=u.device)
         jac = torch.zeros((N, L * F, 3), dtype=torch.float32, device=u.device)
         if N > 0 and n_active > 0:
-            launch(_hash_jac_fwd_kernel, N * n_active,
-                   [to_wp(u_c, dtype=wp.vec3), to_wp(t_c.view(-1)), to_wp(levels), n_active, T, F],
-                   ref=u, outputs=[to_wp(out), to_wp(jac, dtype=wp.vec3)])
+            t_wp, lv_wp = to_wp(t_c.view(-1), ctype=True), to_wp(levels, ctype=True)
+
+            def fwd(a: int, b: int):
+                # rows a..b of u, out and jac: every thread writes only its own point's rows
+                inp = [to_wp(u_c[a:b], dtype=wp.vec3, ctype=True), t_wp, lv_wp, 0, n_active, T, F]
+                outp = [to_wp(out[a:b], ctype=True), to_wp(jac[a:b], dtype=wp.vec3, ctype=True)]
+                return lambda: launch(_hash_jac_fwd_kernel, (b - a) * n_active, inp, ref=u, outputs=outp)
+
+            ranges = _warp.split(N, _warp.n_chunks(N * n_active, u, _MIN_CHUNK_WORK))
+            _warp.run_tasks([fwd(a, b) for a, b in ranges], key=_hash_jac_fwd_kernel)
         ctx.save_for_backward(u_c, t_c)
         ctx.cfg = cfg
         ctx.n_active = n_active
@@ -591,13 +653,28 @@ class _HashEncodeJac(torch.autograd.Function):
             dummy_jac = torch.zeros((1, 1, 3), dtype=torch.float32, device=dev)
             go = dummy2 if grad_out is None else grad_out.float().contiguous()
             gj = dummy_jac if grad_jac is None else grad_jac.float().contiguous()
-            gt_wp = to_wp(grad_table.view(-1)) if need_table else to_wp(dummy)
-            gu_wp = to_wp(grad_u, dtype=wp.vec3) if need_u else to_wp(dummy_vec, dtype=wp.vec3)
-            launch(_hash_jac_bwd_kernel, N * n_active,
-                   [to_wp(u_c, dtype=wp.vec3), to_wp(t_c.view(-1)), to_wp(_level_table(cfg, dev)),
-                    n_active, cfg.table_size, cfg.features, to_wp(go), to_wp(gj, dtype=wp.vec3),
-                    int(grad_out is not None), int(grad_jac is not None), int(need_table), int(need_u)],
-                   ref=u_c, outputs=[gt_wp, gu_wp])
+            # CPU threads: one chunk per group of levels. Groups write disjoint parts of the table
+            # gradient (no race between Warp's non-atomic CPU adds); each group after the first
+            # adds dL/du into its own buffer, summed below in a fixed order.
+            groups = _warp.split(n_active, max(1, min(n_active, _warp.n_chunks(N * n_active, u_c, _MIN_CHUNK_WORK))))
+            gt_wp = to_wp(grad_table.view(-1), ctype=True) if need_table else to_wp(dummy, ctype=True)
+            gu_bufs = [grad_u if need_u else dummy_vec] + [torch.zeros_like(u_c) if need_u else dummy_vec
+                                                          for _ in groups[1:]]
+            common = [to_wp(u_c, dtype=wp.vec3, ctype=True), to_wp(t_c.view(-1), ctype=True),
+                      to_wp(_level_table(cfg, dev), ctype=True)]
+            rest = [cfg.table_size, cfg.features, to_wp(go, ctype=True), to_wp(gj, dtype=wp.vec3, ctype=True),
+                    int(grad_out is not None), int(grad_jac is not None), int(need_table), int(need_u)]
+
+            def bwd(g: int):
+                l0, l1 = groups[g]
+                outp = [gt_wp, to_wp(gu_bufs[g], dtype=wp.vec3, ctype=True)]
+                return lambda: launch(_hash_jac_bwd_kernel, N * (l1 - l0), common + [l0, l1 - l0] + rest,
+                                      ref=u_c, outputs=outp)
+
+            _warp.run_tasks([bwd(g) for g in range(len(groups))], key=_hash_jac_bwd_kernel)
+            if need_u:
+                for extra in gu_bufs[1:]:
+                    grad_u.add_(extra)
         return grad_u, grad_table, None, None
 
 

@@ -27,6 +27,10 @@ wp.set_module_options({"fuse_fp": False, "enable_backward": False})
 _BIG = wp.constant(1.0e30)
 
 BOUNDS = ("sphere", "box")
+# Items per CPU chunk at least (each chunk is one more ~50 us launch): a ray marches tens to
+# hundreds of steps; a cell's alpha is a few flops.
+MIN_CHUNK_RAYS = 256
+MIN_CHUNK_CELLS = 65536
 
 
 # ----------------------------------------------------------------------------- Warp kernels
@@ -136,6 +140,7 @@ def _march_fill_kernel(
     near_min: float,
     offsets: wp.array(dtype=wp.int32),
     counts: wp.array(dtype=wp.int32),
+    r0: int,  # global index of this launch's first ray (launches may cover a slice of the rays)
     out_t0: wp.array(dtype=float),
     out_t1: wp.array(dtype=float),
     out_ray: wp.array(dtype=wp.int32),
@@ -158,7 +163,7 @@ def _march_fill_kernel(
         if _occupied(o, d, (t0 + t1) * 0.5, bits, res):
             out_t0[base + n] = t0
             out_t1[base + n] = t1
-            out_ray[base + n] = wp.int32(r)
+            out_ray[base + n] = wp.int32(r0 + r)
             n += 1
         k += 1
         t0 = tn + (float(k) + j) * step
@@ -306,9 +311,12 @@ def march_rays(
     box = 1 if bound == "box" else 0
     wo, wd, wj, wb = _warp.to_wp(o, wp.vec3), _warp.to_wp(d, wp.vec3), _warp.to_wp(jitter), _warp.to_wp(bits)
     counts = torch.empty(R, dtype=torch.int32, device=dev)
-    _warp.launch(_march_count_kernel, R,
-                 [wo, wd, wj, wb, int(resolution), step, int(max_samples), box, near_min, _warp.to_wp(counts)],
-                 ref=o)
+    # one thread per ray, writing only its own count (and, below, its own samples)
+    per_ray = {0: (o, wp.vec3), 1: (d, wp.vec3), 2: (jitter, None)}
+    ranges = _warp.item_ranges(R, o, MIN_CHUNK_RAYS)
+    _warp.launch_chunked(_march_count_kernel, [wo, wd, wj, wb, int(resolution), step, int(max_samples), box,
+                                               near_min, _warp.to_wp(counts)], [], o, ranges,
+                         sliced_in={**per_ray, 9: (counts, None)})
     csum = torch.cumsum(counts, 0, dtype=torch.int32)
     offsets = csum - counts
     total = int(csum[-1].item())  # the one host sync: the output size must be known
@@ -316,11 +324,10 @@ def march_rays(
     t1 = torch.empty(total, dtype=torch.float32, device=dev)
     ray_index = torch.empty(total, dtype=torch.int32, device=dev)
     if total > 0:
-        _warp.launch(_march_fill_kernel, R,
-                     [wo, wd, wj, wb, int(resolution), step, int(max_samples), box, near_min,
-                      _warp.to_wp(offsets), _warp.to_wp(counts),
-                      _warp.to_wp(t0), _warp.to_wp(t1), _warp.to_wp(ray_index)],
-                     ref=o)
+        _warp.launch_chunked(_march_fill_kernel, [wo, wd, wj, wb, int(resolution), step, int(max_samples), box,
+                                                  near_min, _warp.to_wp(offsets), _warp.to_wp(counts), 0],
+                             [_warp.to_wp(t0), _warp.to_wp(t1), _warp.to_wp(ray_index)], o, ranges,
+                             sliced_in={**per_ray, 9: (offsets, None), 10: (counts, None)}, first_arg=11)
     return offsets, counts, t0, t1, ray_index
 
 
@@ -414,8 +421,9 @@ def occupancy_alpha(
     """
     s = sdf.detach().reshape(-1).to(torch.float32).contiguous()
     out = torch.empty_like(s)
-    _warp.launch(_alpha_kernel, s.shape[0],
-                 [_warp.to_wp(s), _f32(inv_s), _f32(0.5 * step), _alpha_scale(inv_s, step), _warp.to_wp(out)], ref=s)
+    _warp.launch_chunked(_alpha_kernel, [_warp.to_wp(s), _f32(inv_s), _f32(0.5 * step), _alpha_scale(inv_s, step),
+                                         _warp.to_wp(out)], [], s, _warp.item_ranges(s.shape[0], s, MIN_CHUNK_CELLS),
+                         sliced_in={0: (s, None), 4: (out, None)})
     return out
 
 

@@ -16,6 +16,7 @@ from . import _warp
 # wp.Mesh objects keyed by the vertex/face tensors: the BVH is built once per mesh.
 _MESH_CACHE: dict[tuple, tuple] = {}
 _MESH_CACHE_MAX = 4
+MIN_CHUNK_RAYS = 1024  # rays per CPU chunk at least (a BVH query is a few microseconds)
 
 
 @wp.kernel
@@ -91,9 +92,12 @@ def raycast_mesh(vertices: torch.Tensor, faces: torch.Tensor, origins: torch.Ten
     o = origins.detach().to(torch.float32).contiguous()
     d = dirs.detach().to(torch.float32).contiguous()
     mt = _max_t_tensor(max_t, R, o)
-    _warp.launch(_raycast_kernel, R,
-                 inputs=[mesh.id, _warp.to_wp(o, wp.vec3), _warp.to_wp(d, wp.vec3), _warp.to_wp(mt)],
-                 outputs=[_warp.to_wp(t), _warp.to_wp(face), _warp.to_wp(normal, wp.vec3)], ref=o)
+    # one thread per ray, writing only its own hit; the BVH is only read
+    _warp.launch_chunked(_raycast_kernel, [mesh.id, _warp.to_wp(o, wp.vec3), _warp.to_wp(d, wp.vec3), _warp.to_wp(mt)],
+                         [_warp.to_wp(t), _warp.to_wp(face), _warp.to_wp(normal, wp.vec3)], o,
+                         _warp.item_ranges(R, o, MIN_CHUNK_RAYS),
+                         sliced_in={1: (o, wp.vec3), 2: (d, wp.vec3), 3: (mt, None)},
+                         sliced_out={0: (t, None), 1: (face, None), 2: (normal, wp.vec3)})
     return t, face, normal
 
 

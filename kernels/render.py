@@ -430,6 +430,15 @@ def _render_bwd(
                     wp.atomic_add(d_W, base + j, accW[k, j])
 
 
+
+# ----------------------------------------------------------------------------------------
+# CPU chunking (kernels/_warp.py runs the chunks on its thread pool)
+# ----------------------------------------------------------------------------------------
+# Samples per CPU chunk at least: ~0.5 ms of forward work, far above the ~50 us that one
+# more launch costs.
+MIN_CHUNK_SAMPLES = 2048
+
+
 # ----------------------------------------------------------------------------------------
 # Wrapper
 # ----------------------------------------------------------------------------------------
@@ -472,10 +481,16 @@ class _RenderPattern(torch.autograd.Function):
         ]
         use_q = q_ext is not None
         q_arr = q_ext if use_q else torch.zeros((1, 3), dtype=torch.float32, device=ref.device)
-        _warp.launch(_render_fwd, R, common + [int(return_weights), _wp(q_arr, wp.vec3), int(use_q)], ref,
-                     outputs=[_wp(out_color, wp.vec3), _wp(out_opacity),
-                              _wp(out_depth), _wp(out_texture, wp.vec3), _wp(weights),
-                              _wp(trans)])
+        inputs = common + [int(return_weights), _wp(q_arr, wp.vec3), int(use_q)]
+        per_ray_in = {6: (offsets, None), 7: (counts, None), 8: (dirs, wp.vec3), 9: (ray_frame, None)}
+        outputs = [_wp(out_color, wp.vec3), _wp(out_opacity), _wp(out_depth), _wp(out_texture, wp.vec3),
+                   _wp(weights), _wp(trans)]
+        per_ray_out = {0: (out_color, wp.vec3), 1: (out_opacity, None), 2: (out_depth, None),
+                       3: (out_texture, wp.vec3)}
+
+        # A ray's thread writes only its own outputs and its own samples' weights and T.
+        _warp.launch_chunked(_render_fwd, inputs, outputs, ref, _warp.ray_ranges(offsets, S, ref, MIN_CHUNK_SAMPLES),
+                             sliced_in=per_ray_in, sliced_out=per_ray_out)
         ctx.save_for_backward(sdf, grad, color, pos, inv_s, i_r, i_b, proj_W, q_arr, t0, t1, offsets, counts, dirs,
                               ray_frame, proj_K, proj_pattern, pat_buf, pat_meta, trans)
         ctx.use_q = use_q
@@ -501,6 +516,7 @@ class _RenderPattern(torch.autograd.Function):
         d_invs, d_ir, d_ib = buf(4, (1,)), buf(5, (1,)), buf(6, (1,))
         d_W = torch.zeros(proj_W.shape if needs[7] else (1,), dtype=torch.float32, device=dev)
         d_q = torch.zeros(q_arr.shape if needs[8] else (1, 3), dtype=torch.float32, device=dev)
+        g_color, g_opacity, g_depth, g_texture = (_f32(g) for g in (g_color, g_opacity, g_depth, g_texture))
         inputs = [
             _wp(sdf), _wp(grad, wp.vec3), _wp(color, wp.vec3), _wp(pos, wp.vec3),
             _wp(t0), _wp(t1), _wp(offsets), _wp(counts),
@@ -509,15 +525,19 @@ class _RenderPattern(torch.autograd.Function):
             _wp(pat_meta, wp.vec3i), _wp(inv_s), ctx.cos_anneal, _wp(i_r),
             _wp(i_b),
             _wp(trans), _wp(q_arr, wp.vec3), int(ctx.use_q), int(needs[8]),
-            _wp(_f32(g_color), wp.vec3), _wp(_f32(g_opacity)), _wp(_f32(g_depth)),
-            _wp(_f32(g_texture), wp.vec3),
+            _wp(g_color, wp.vec3), _wp(g_opacity), _wp(g_depth), _wp(g_texture, wp.vec3),
             int(needs[0]), int(needs[1]), int(needs[2]), int(needs[3]), int(needs[4]), int(needs[5]),
             int(needs[6]), int(needs[7]),
         ]
-        outputs = [_wp(d_sdf), _wp(d_grad, wp.vec3), _wp(d_col, wp.vec3),
-                   _wp(d_pos, wp.vec3), _wp(d_invs), _wp(d_ir), _wp(d_ib),
-                   _wp(d_W.view(-1)), _wp(d_q, wp.vec3)]
-        _warp.launch(_render_bwd, offsets.shape[0], inputs, sdf, outputs=outputs)
+        R = offsets.shape[0]
+        per_ray_in = {6: (offsets, None), 7: (counts, None), 8: (dirs, wp.vec3), 9: (ray_frame, None),
+                      23: (g_color, wp.vec3), 24: (g_opacity, None), 25: (g_depth, None), 26: (g_texture, wp.vec3)}
+        outputs = [_wp(d_sdf), _wp(d_grad, wp.vec3), _wp(d_col, wp.vec3), _wp(d_pos, wp.vec3), _wp(d_invs),
+                   _wp(d_ir), _wp(d_ib), _wp(d_W.view(-1)), _wp(d_q, wp.vec3)]
+        # Per-sample gradients are written by their ray's thread only; the shared parameters
+        # (inv_s, i_r, i_b, proj_W) take atomics from every ray.
+        _warp.launch_chunked(_render_bwd, inputs, outputs, sdf, _warp.ray_ranges(offsets, S, sdf, MIN_CHUNK_SAMPLES),
+                             sliced_in=per_ray_in, shared={4: d_invs, 5: d_ir, 6: d_ib, 7: d_W.view(-1)})
         res = [d_sdf, d_grad, d_col, d_pos, d_invs, d_ir, d_ib, d_W, d_q]
         res = [g if n else None for g, n in zip(res, needs)]
         return tuple(res) + (None,) * 12

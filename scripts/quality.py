@@ -131,7 +131,8 @@ def main() -> None:
     ap.add_argument("--cache", default="/tmp/fastneus-quality-scenes")
     ap.add_argument("--out", default="/tmp/fastneus-quality")
     ap.add_argument("--tag", default=None, help="name of this matrix (default: the device kind)")
-    ap.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: torch's choice)")
+    ap.add_argument("--threads", type=int, default=None,
+                    help="CPU threads for the kernels and torch (the config key threads; default: every CPU)")
     ap.add_argument("--report-from", default=None, help="only tabulate these JSONL files (comma-separated)")
     ap.add_argument("--no-md", action="store_true", help="do not update docs/BENCHMARKS.md")
     ap.add_argument("--variants", default=None, help='named override sets: "name:k=v k=v;name2:k=v"')
@@ -143,7 +144,7 @@ def main() -> None:
     tag = args.tag or kind
     budgets = [float(b) for b in (args.budgets or ("5,10,20,60" if gpu else "30,60,120")).split(",")]
     if args.threads:
-        torch.set_num_threads(args.threads)
+        args.overrides = list(args.overrides) + [f"threads={args.threads}"]
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     jsonl = out / f"quality-{tag}.jsonl"

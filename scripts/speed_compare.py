@@ -132,7 +132,8 @@ def make_trainer(method: str, scene, args, out: Path, frames: list[int], warmup:
 
     preset = "fewview" if args.device.startswith("cuda") else "cpu-quick"
     ov = [f"backend={method}", "steps=100000000", f"time_budget={max(args.budgets)}",
-          f"frames={json.dumps(frames)}", "log_every=1000000", "save_every=100000000"] + list(args.set)
+          f"frames={json.dumps(frames)}", "log_every=1000000", "save_every=100000000"] + (
+        [f"threads={args.threads}"] if args.threads else []) + list(args.set)
     cfg = load_config(preset, ov)
     return Trainer(scene, cfg, out, args.device)
 
@@ -365,6 +366,7 @@ def run_method(method: str, args) -> dict:
         if cuda:
             torch.cuda.reset_peak_memory_stats()  # evaluation allocations do not count as training peak
     res = {"method": method, "label": LABELS[method], "points": points, "eval_frame": eval_frame,
+           "threads": getattr(tr, "threads", torch.get_num_threads()),
            "eval_frame_held_out": held, "train_frames": frames,
            "config": {k: (list(v) if isinstance(v, tuple) else v) for k, v in tr.cfg.to_dict().items()}}
     if method != "baseline" and (args.breakdown or cuda):
@@ -560,7 +562,8 @@ def breakdown_md(results: list[dict]) -> str:
             continue
         rows = [{"phase": p["phase"], "ms": p["ms"], "share_%": p["share_pct"]} for p in bd["phases"]]
         rows.append({"phase": "**total**", "ms": bd["total_ms"], "share_%": 100.0})
-        parts.append(f"Per-phase breakdown, {r['label']} (median of {bd['steps']} steps after the comparison run; "
+        parts.append(f"Per-phase breakdown, {r['label']} ({r.get('threads', '?')} threads; median of {bd['steps']} "
+                     f"steps after the comparison run; "
                      f"{bd['rays']} rays, {bd['samples_median']:.0f} samples per step; occupancy update amortised "
                      f"over {bd['occ_update_every']} steps; device synchronised between phases, so the sum exceeds "
                      f"an unsynchronised step):\n\n" + md_table(rows, ["phase", "ms", "share_%"]))
@@ -587,7 +590,8 @@ def main() -> None:
     ap.add_argument("--set", nargs="*", default=[], help="fastneus config key=value for both backends")
     ap.add_argument("--baseline-set", nargs="*", default=[], help="baseline config key=value (e.g. n_rays=256)")
     ap.add_argument("--threads", type=int, default=None,
-                    help="torch CPU threads (default: torch's; 1 is faster for small ops on shared cores)")
+                    help="CPU threads: fastneus's config key threads (Warp kernels and torch) and the baseline's "
+                         "torch threads (default: every CPU)")
     ap.add_argument("--no-warmup", action="store_true", help="skip the untimed kernel/BLAS warm-up")
     ap.add_argument("--no-isolate", action="store_true", help="run all methods in this process")
     ap.add_argument("--report-from", default=None, help="re-write the outputs from a previous run's JSON (no training)")
@@ -658,6 +662,7 @@ def report(results: list[dict], args, cmd: str, mach: str, rev: str, wall_s: flo
                    "psnr_dB": p["psnr"]} for r in results for p in r["points"]]
     bd = breakdown_md(results)
     scene_name = Path(args.scene).name
+    threads_note = ", ".join(f"{r['method']} {r.get('threads', '?')}" for r in results)
     ev = results[0]
     mem_note = ("torch.cuda.max_memory_allocated during training" if cuda else
                 "process max RSS (training + evaluation" + (", one process per method)" if not args.no_isolate else
@@ -668,7 +673,7 @@ def report(results: list[dict], args, cmd: str, mach: str, rev: str, wall_s: flo
             f"Chamfer GT->reconstruction in mm (mesh {args.mesh_res}^3); PSNR with the pattern on frame "
             f"{ev['eval_frame']} ({'held out' if ev['eval_frame_held_out'] else 'a training frame'}; "
             f"{'whole image' if args.psnr_pixels == 0 else f'{args.psnr_pixels} fixed random pixels'}); "
-            f"memory: {mem_note}; torch threads {torch.get_num_threads()}. Target Chamfer: "
+            f"memory: {mem_note}; CPU threads {threads_note}. Target Chamfer: "
             f"{'none' if target is None else f'{target:.3g} mm ({src})'}; time to target = training time from "
             f"which the Chamfer stays at or below it, read at the "
             f"evaluation points {eval_times(args.budgets, args.extra_points)} s. fastneus: preset "

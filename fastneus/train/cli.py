@@ -4,7 +4,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from fastneus.cli import add_device_arg, resolve_device
+from fastneus.cli import add_device_arg, add_threads_arg, resolve_device, threads_override
 from fastneus.errors import FastneusError
 
 
@@ -42,7 +42,7 @@ def _run(args, tag: str, default_preset: str, oneshot_frame: int | None = None) 
             raise FastneusError(f"frame {i} out of range 0..{len(scene.frames) - 1}", field="--frame")
         view = scene.frames[i].view
         base["frames"] = [j for j, f in enumerate(scene.frames) if f.view == view]
-    cfg = load_config(preset, args.overrides, base=base)
+    cfg = load_config(preset, list(args.overrides or []) + threads_override(args), base=base)
     out = Path(args.out) if args.out else _default_out(args.scene, tag)
     con = _console()
     con.print(f"[bold]fastneus {tag}[/bold]: scene {args.scene} ({len(scene.frames)} frames, "
@@ -69,6 +69,7 @@ def _common(p: argparse.ArgumentParser) -> None:
     p.add_argument("--overwrite", action="store_true", help="replace a run already in the run folder "
                                                             "(refused otherwise)")
     add_device_arg(p)
+    add_threads_arg(p)
     p.add_argument("overrides", nargs="*", metavar="key=value", help="config overrides, e.g. steps=2000 lr=0.005")
 
 

@@ -64,6 +64,16 @@ def resolve_bg_prior(cfg: Config, masks_used: bool, bg_fraction: float) -> tuple
     return used, f"background prior: {cfg.bg_prior} -> {'on' if used else 'off'} ({share})"
 
 
+def _configure_threads(requested: int) -> tuple[int, str]:
+    """CPU threads for the Warp kernels and torch (``Config.threads``; 0 = auto); (count, note)."""
+    from fastneus.kernels import THREADS_ENV, configure_threads
+
+    try:
+        return configure_threads(requested)
+    except ValueError as e:
+        raise FastneusError(str(e), field=THREADS_ENV) from None
+
+
 def _psnr(mse: float) -> float:
     return -10.0 * math.log10(max(mse, 1e-12))
 
@@ -83,6 +93,7 @@ class Trainer:
         self.scene, self.cfg, self.out, self.console = scene, cfg, Path(out), console
         self.device = torch.device(device)
         self.out.mkdir(parents=True, exist_ok=True)
+        self.threads, self.threads_note = _configure_threads(cfg.threads)
         torch.manual_seed(cfg.seed)
         np.random.seed(cfg.seed)
         n = len(scene.frames)
