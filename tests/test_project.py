@@ -41,6 +41,37 @@ def _medium(P, gen, device, dtype=torch.float32):
     return torch.tensor(rows, dtype=dtype, device=device), sigma.to(dtype).to(device)
 
 
+def _vs_twin(inp, blur, port, sigma, gen, device, tag):
+    """project_pattern (float32) against the float64 twin: q, then the gradients of pos, W,
+    blur (and sigma) for one random upstream gradient. Returns the op's gradients."""
+    medium = sigma is not None
+    pos = inp["pos"].clone().requires_grad_(True)
+    W = inp["proj_W"].clone().requires_grad_(True)
+    b = blur.clone().requires_grad_(True)
+    sg = None if sigma is None else sigma.clone().requires_grad_(True)
+    q = project_pattern(**_pargs(inp, pos=pos, proj_W=W), blur=b, port=port, sigma=sg)
+    pos64 = inp["pos"].double().requires_grad_(True)
+    W64 = inp["proj_W"].double().requires_grad_(True)
+    b64 = blur.double().requires_grad_(True)
+    sg64 = None if sigma is None else sigma.double().requires_grad_(True)
+    q64 = project_pattern_torch(**_pargs(inp, pos=pos64, proj_W=W64), blur=b64,
+                                port=None if port is None else port.double(), sigma=sg64)
+    _close(q, q64, 1e-5, f"q ({tag})")
+    if q.shape[0] > 50:
+        assert q.abs().max() > 0  # some samples are lit
+    up = torch.randn(q.shape, generator=gen, dtype=torch.float64).to(device)
+    ins_a = [pos, W, b] + ([sg] if medium else [])
+    ins_b = [pos64, W64, b64] + ([sg64] if medium else [])
+    ga = torch.autograd.grad((q * up.float()).sum(), ins_a, allow_unused=True)
+    gb = torch.autograd.grad((q64 * up).sum(), ins_b, allow_unused=True)
+    for name, a, r in zip(("pos", "proj_W", "blur", "sigma"), ga, gb):
+        a = torch.zeros_like(r) if a is None else a
+        r = torch.zeros_like(a) if r is None else r
+        assert a.shape == r.shape and a.dtype == torch.float32, f"d{name} ({tag})"
+        _close(a, r, 3e-4, f"d{name} ({tag})")
+    return ga
+
+
 @pytest.mark.parametrize("device", DEVICES)
 @pytest.mark.parametrize("size,n,medium", [((0, 2, 2, 8), 3, False), ((1, 2, 3, 1), 1, False),
                                            ((64, 3, 4, 24), 3, False), ((257, 2, 3, 32), 5, False),
@@ -54,29 +85,7 @@ def test_forward_backward_vs_twin(size, n, medium, device):
     port, sigma = _medium(P, gen, device) if medium else (None, None)
     if medium:  # keep refracted projections off the pixel-cell boundaries, as make_inputs does for pinholes
         _avoid_cell_edges(inp, port, n)
-    pos = inp["pos"].clone().requires_grad_(True)
-    W = inp["proj_W"].clone().requires_grad_(True)
-    b = blur.clone().requires_grad_(True)
-    sg = None if sigma is None else sigma.clone().requires_grad_(True)
-    q = project_pattern(**_pargs(inp, pos=pos, proj_W=W), blur=b, port=port, sigma=sg)
-    pos64 = inp["pos"].double().requires_grad_(True)
-    W64 = inp["proj_W"].double().requires_grad_(True)
-    b64 = blur.double().requires_grad_(True)
-    sg64 = None if sigma is None else sigma.double().requires_grad_(True)
-    q64 = project_pattern_torch(**_pargs(inp, pos=pos64, proj_W=W64), blur=b64,
-                                port=None if port is None else port.double(), sigma=sg64)
-    _close(q, q64, 1e-5, f"q (seed {seed})")
-    if q.shape[0] > 50:
-        assert q.abs().max() > 0  # some samples are lit
-    up = torch.randn(q.shape, generator=gen, dtype=torch.float64).to(device)
-    ins_a = [pos, W, b] + ([sg] if medium else [])
-    ins_b = [pos64, W64, b64] + ([sg64] if medium else [])
-    ga = torch.autograd.grad((q * up.float()).sum(), ins_a, allow_unused=True)
-    gb = torch.autograd.grad((q64 * up).sum(), ins_b, allow_unused=True)
-    for name, a, r in zip(("pos", "proj_W", "blur", "sigma"), ga, gb):
-        a = torch.zeros_like(r) if a is None else a
-        r = torch.zeros_like(a) if r is None else r
-        _close(a, r, 3e-4, f"d{name} (seed {seed})")
+    _vs_twin(inp, blur, port, sigma, gen, device, f"seed {seed}")
 
 
 # ((R, F, P, max samples per ray), stripe rows, medium): no samples at all, one sample, and
@@ -112,30 +121,7 @@ def test_striped_gradients_vs_twin(size, stripes, medium, device, monkeypatch):
     port, sigma = _medium(P, gen, device) if medium else (None, None)
     if medium:
         _avoid_cell_edges(inp, port, 3)
-    pos = inp["pos"].clone().requires_grad_(True)
-    W = inp["proj_W"].clone().requires_grad_(True)
-    b = blur.clone().requires_grad_(True)
-    sg = None if sigma is None else sigma.clone().requires_grad_(True)
-    q = project_pattern(**_pargs(inp, pos=pos, proj_W=W), blur=b, port=port, sigma=sg)
-    pos64 = inp["pos"].double().requires_grad_(True)
-    W64 = inp["proj_W"].double().requires_grad_(True)
-    b64 = blur.double().requires_grad_(True)
-    sg64 = None if sigma is None else sigma.double().requires_grad_(True)
-    q64 = project_pattern_torch(**_pargs(inp, pos=pos64, proj_W=W64), blur=b64,
-                                port=None if port is None else port.double(), sigma=sg64)
-    _close(q, q64, 1e-5, f"q (seed {seed})")
-    if S > 50:
-        assert q.abs().max() > 0  # some samples are lit
-    up = torch.randn(q.shape, generator=gen, dtype=torch.float64).to(device)
-    ins_a = [pos, W, b] + ([sg] if medium else [])
-    ins_b = [pos64, W64, b64] + ([sg64] if medium else [])
-    ga = torch.autograd.grad((q * up.float()).sum(), ins_a, allow_unused=True)
-    gb = torch.autograd.grad((q64 * up).sum(), ins_b, allow_unused=True)
-    for name, a, r in zip(("pos", "proj_W", "blur", "sigma"), ga, gb):
-        a = torch.zeros_like(r) if a is None else a
-        r = torch.zeros_like(a) if r is None else r
-        assert a.shape == r.shape and a.dtype == torch.float32, f"d{name} (seed {seed})"
-        _close(a, r, 3e-4, f"d{name}, {stripes} stripes, S={S} (seed {seed})")
+    ga = _vs_twin(inp, blur, port, sigma, gen, device, f"{stripes} stripes, S={S}, seed {seed}")
     if S > 50:  # the shared gradients are not trivially zero
         assert ga[1].abs().max() > 0 and ga[2].abs().max() > 0, f"seed {seed}"
 
