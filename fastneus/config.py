@@ -121,7 +121,7 @@ class Config:
     pose_refine: bool = False          # learn an SE(3) correction per viewpoint camera and per projector
     pose_anchor: bool = True           # the first training viewpoint's camera stays fixed (world frame)
     pose_fix_scale: bool = True        # with the anchor, hold the rig's global scale (its one free direction)
-    lr_pose: float = 1e-3              # on the corrections (radians, normalised units)
+    lr_pose: float = 2e-4              # on the corrections (radians, normalised units); 1e-3 random-walked the weak modes
     pose_warmup_frac: float = 0.1      # corrections frozen until the geometry has formed
     projector_blur: int = 0            # learned n x n separable blur of each projector's pattern (0 = off; odd n <= 7)
     lr_blur: float = 5e-3              # on the x / y kernel profiles (identity init, each normalised to sum 1)

@@ -176,7 +176,7 @@ def part_water(args, out: Path) -> list[dict]:
 
 TABLES = {
     "pose": ["run", "chamfer_sym_mm", "chamfer_vs_exact", "chamfer_gt2rec_mm", "psnr_pattern", "cam_rot_deg_mean",
-             "cam_rot_deg_max", "cam_trans_mm_max", "proj_rot_deg_mean", "proj_rot_deg_max", "proj_trans_mm_max",
+             "cam_rot_deg_max", "cam_trans_mm_max", "cam_shift_px_mean", "cam_shift_px_max", "proj_rot_deg_mean", "proj_rot_deg_max", "proj_trans_mm_max",
              "steps", "target_met"],
     "blur": ["run", "chamfer_sym_mm", "chamfer_vs_in_focus", "chamfer_gt2rec_mm", "psnr_pattern", "psnr_texture",
              "kernel_l1", "kernel_centre", "true_centre", "steps"],

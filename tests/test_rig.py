@@ -326,3 +326,32 @@ def test_config_keys_validate_and_accept_exponent_floats():
         with pytest.raises(FastneusError) as e:
             load_config("cpu-quick", [bad])
         assert e.value.field == key
+
+
+def test_pose_errors_image_shift_tells_a_turn_from_an_orbit(tmp_path):
+    """cam_shift_px: a turn of the camera about its own centre moves every image point by about
+    f * angle; an orbit about the scene centre (the same turn plus the sideways move that keeps
+    the centre in place) moves them far less, although its rotation and translation errors are
+    larger. Exact poses score 0."""
+    import copy
+
+    truth = make_scene(tmp_path / "s", n=2, n_proj=1, seed=3, size=(64, 48))
+    th = math.radians(0.5)
+    turn = np.eye(4)
+    turn[:3, :3] = cv2.Rodrigues(np.array([0.0, th, 0.0]))[0]
+    T = truth.cam_to_world(1)
+    c_cam = (np.linalg.inv(T) @ np.r_[truth.bounds.center, 1.0])[:3]  # scene centre in camera 1
+    orbit = np.eye(4)
+    orbit[:3, :3] = turn[:3, :3]
+    orbit[:3, 3] = c_cam - turn[:3, :3] @ c_cam
+    errs = {}
+    for name, E in (("turn", turn), ("orbit", orbit)):
+        s = copy.deepcopy(truth)
+        s.frames[1].cam_to_world = T @ E
+        errs[name] = pose_errors(s, truth, [0, 1])
+    f = truth.frame_camera(1).K[0, 0]
+    assert errs["turn"]["cam_shift_px_mean"] == pytest.approx(f * th, rel=0.1)
+    assert errs["orbit"]["cam_shift_px_mean"] < 0.5 * errs["turn"]["cam_shift_px_mean"]
+    assert errs["orbit"]["cam_trans_mm_max"] > errs["turn"]["cam_trans_mm_max"]
+    assert errs["orbit"]["cam_rot_deg_max"] == pytest.approx(0.5, rel=1e-6)
+    assert pose_errors(truth, truth, [0, 1])["cam_shift_px_max"] == 0.0
