@@ -24,6 +24,7 @@ class Config:
     # --- run ---
     preset: str = "fewview"            # name of the preset this config came from (informational)
     backend: str = "warp"              # kernel backend: warp | torch (the twins; for comparison)
+    pattern_pass: str = "auto"         # fused | split | auto (split on CUDA): sample the patterns per sample
     seed: int = 0
     threads: int = 0                   # CPU threads for the Warp kernels and torch (0 = auto: FASTNEUS_THREADS,
                                        # else every CPU this process may run on); --threads on the CLI
@@ -142,6 +143,7 @@ class Config:
 
 _CHOICES = {
     "backend": ("warp", "torch"),
+    "pattern_pass": ("auto", "fused", "split"),
     "bound": ("sphere", "box"),
     "illum_init": ("scene", "ones"),
     "masks": ("auto", "on", "off"),

@@ -244,7 +244,10 @@ class Rig(torch.nn.Module):
 
     def kernel_ops(self) -> tuple[str, ...]:
         """Extra kernel ops a training step uses (compiled before the clock starts)."""
-        q_ext = self.blur_on or self.medium_on or self._proj.laser_on is not None or self._proj.port is not None
+        from fastneus.field.renderer import pattern_pass_split
+
+        q_ext = self.blur_on or self.medium_on or self._proj.laser_on is not None or self._proj.port is not None \
+            or pattern_pass_split(self.cfg, self.device)
         ops = ("project_pattern",) if q_ext else ()
         return ops + (("laser_light",) if self._proj.laser_on is not None else ())
 

@@ -16,6 +16,16 @@ def _empty(n_rays: int, device, dtype=torch.float32, shots: int = 0) -> dict:
             "normal": z(n_rays, 3), "grad": z(0, 3), "curv": None, "n_samples": 0}
 
 
+def pattern_pass_split(cfg, device) -> bool:
+    """Whether the projected light is sampled in its own per-sample pass (``project_pattern``)
+    rather than inside the render kernel's per-ray loop (``cfg.pattern_pass``; ``auto``: on
+    CUDA, where a step has few rays of hundreds of samples each and the per-ray loop's chain
+    of dependent pattern fetches left most of the GPU idle; on the CPU one thread walks many
+    rays either way and the extra pass only adds memory traffic)."""
+    mode = getattr(cfg, "pattern_pass", "auto")
+    return mode == "split" or (mode == "auto" and torch.device(device).type == "cuda")
+
+
 def render_rays(field, bits: torch.Tensor, grid_res: int, proj, origins: torch.Tensor, dirs: torch.Tensor,
                 fidx: torch.Tensor, cfg, *, i_r: torch.Tensor, i_b: torch.Tensor, cos_anneal: float,
                 jitter: bool = True, with_normals: bool = False, curvature: bool = False,
@@ -60,13 +70,15 @@ def render_rays(field, bits: torch.Tensor, grid_res: int, proj, origins: torch.T
     blur, laser_on = getattr(proj, "blur", None), getattr(proj, "laser_on", None)
     port, sigma = getattr(proj, "port", None), getattr(proj, "sigma", None)
 
+    split = pattern_pass_split(cfg, device) and pattern_on
+
     def light(f: torch.Tensor):
-        """Projected light Q of the real-rig models (fastneus.rig) for frame rows ``f`` [B], or
-        None: computed apart and handed to the render kernel."""
-        if blur is None and laser_on is None and port is None and sigma is None:
+        """Projected light Q for frame rows ``f`` [B] computed apart (one thread per sample) and
+        handed to the render kernel, or None: the render kernel samples the patterns itself."""
+        if blur is None and laser_on is None and port is None and sigma is None and not split:
             return None
         q_ext, b = None, blur
-        if b is not None or port is not None or sigma is not None or bool((pat >= 0).any()):
+        if b is not None or port is not None or sigma is not None or split or bool((pat >= 0).any()):
             if b is None:
                 from fastneus.kernels.project import identity_blur
 

@@ -1,0 +1,145 @@
+"""Where a training step's wall time goes on the GPU: kernels vs launches vs host syncs.
+
+    python scripts/step_profile.py SCENE [--device cuda] [--warm-steps 200] [--steps 20]
+                                   [--out DIR] [key=value ...]
+
+Builds the device's default trainer (fewview on CUDA, cpu-quick on CPU, plus the overrides),
+trains ``--warm-steps`` steps untimed (so the occupancy grid and the sample counts are those of
+a run under way), then runs ``--steps`` unmodified ``Trainer.train_step`` calls under
+``torch.profiler`` (CPU and CUDA activity; CUPTI sees Warp's kernels as well as torch's).
+Per step it reports the wall time, the number of GPU kernels and memory copies launched,
+the GPU busy time (the union of the kernel and copy intervals on the device), the share of
+the wall time the GPU is idle, the host syncs (``cudaStreamSynchronize`` /
+``cudaDeviceSynchronize`` / blocking device-to-host copies) and the kernels that take the most
+device time. A step whose GPU is idle most of the wall time is launch- (host-) bound: faster
+kernels cannot help it, fewer launches (CUDA graphs, fused ops) can.
+
+Writes ``OUT/step-profile.json`` and ``OUT/step-profile.md``; prints the Markdown.
+"""
+from __future__ import annotations
+
+import argparse
+import statistics
+import sys
+import time
+from pathlib import Path
+
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from benchutil import git_rev, machine, md_table, write_json  # noqa: E402
+
+SYNC_NAMES = ("cudaStreamSynchronize", "cudaDeviceSynchronize", "cudaEventSynchronize")
+
+
+def _union_ms(intervals: list[tuple[float, float]]) -> float:
+    """Total length (ms) of the union of [start, end) intervals given in microseconds."""
+    tot, cur_s, cur_e = 0.0, None, None
+    for s, e in sorted(intervals):
+        if cur_e is None or s > cur_e:
+            if cur_e is not None:
+                tot += cur_e - cur_s
+            cur_s, cur_e = s, e
+        else:
+            cur_e = max(cur_e, e)
+    if cur_e is not None:
+        tot += cur_e - cur_s
+    return tot / 1000.0
+
+
+def profile_steps(tr, steps: int) -> dict:
+    """Profile ``steps`` training steps one by one; medians over the steps."""
+    from torch.profiler import ProfilerActivity, profile
+
+    dev = torch.device(tr.device)
+    cuda = dev.type == "cuda"
+    acts = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if cuda else [])
+    per: dict[str, list[float]] = {k: [] for k in ("wall_ms", "kernels", "copies", "gpu_busy_ms", "syncs",
+                                                   "samples")}
+    kernel_ms: dict[str, float] = {}
+    for _ in range(steps):
+        if cuda:
+            torch.cuda.synchronize()
+        with profile(activities=acts) as prof:
+            t = time.perf_counter()
+            st = tr.train_step()
+            if cuda:
+                torch.cuda.synchronize()
+            wall = (time.perf_counter() - t) * 1000
+        evs = prof.events()
+        dev_iv, n_k, n_c, n_sync = [], 0, 0, 0
+        for e in evs:
+            dt = getattr(e, "device_type", None)
+            on_dev = dt is not None and dt.name == "CUDA"
+            if on_dev:
+                iv = e.time_range
+                dev_iv.append((iv.start, iv.end))
+                name = e.name
+                if "memcpy" in name.lower() or "memset" in name.lower():
+                    n_c += 1
+                else:
+                    n_k += 1
+                    kernel_ms[name] = kernel_ms.get(name, 0.0) + (iv.end - iv.start) / 1000.0
+            elif e.name in SYNC_NAMES:
+                n_sync += 1
+        per["wall_ms"].append(wall)
+        per["kernels"].append(n_k)
+        per["copies"].append(n_c)
+        per["gpu_busy_ms"].append(_union_ms(dev_iv))
+        per["syncs"].append(n_sync)
+        per["samples"].append(float(st.get("samples", 0)) if isinstance(st, dict) else 0.0)
+    med = {k: statistics.median(v) for k, v in per.items()}
+    med["gpu_idle_pct"] = 100.0 * max(0.0, 1.0 - med["gpu_busy_ms"] / max(med["wall_ms"], 1e-9))
+    med["samples_per_s_M"] = med["samples"] / max(med["wall_ms"], 1e-9) / 1000.0
+    top = sorted(kernel_ms.items(), key=lambda kv: -kv[1])[:12]
+    total_k = sum(kernel_ms.values())
+    return {"steps": steps, "median": med,
+            "top_kernels": [{"kernel": k[:90], "ms_per_step": v / steps, "share_pct": 100 * v / max(total_k, 1e-9)}
+                            for k, v in top]}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("scene")
+    ap.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
+    ap.add_argument("--warm-steps", type=int, default=200)
+    ap.add_argument("--steps", type=int, default=20)
+    ap.add_argument("--out", default="step-profile")
+    ap.add_argument("overrides", nargs="*", help="key=value config overrides")
+    args = ap.parse_intermixed_args()  # key=value overrides may follow the options
+
+    from fastneus.config import load_config
+    from fastneus.formats.detect import load_scene
+    from fastneus.kernels import prepare_kernels
+    from fastneus.train.trainer import Trainer
+
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    scene = load_scene(Path(args.scene))
+    preset = "fewview" if args.device.startswith("cuda") else "cpu-quick"
+    prepare_kernels(args.device, say=print)
+    cfg = load_config(preset, ["log_every=1000000", "save_every=100000000"] + list(args.overrides))
+    torch.manual_seed(0)
+    tr = Trainer(scene, cfg, out / "run", args.device)
+    for _ in range(args.warm_steps):
+        tr.train_step()
+    res = profile_steps(tr, args.steps)
+    m = res["median"]
+    head = (f"`python scripts/step_profile.py {args.scene} --device {args.device} --warm-steps {args.warm_steps} "
+            f"--steps {args.steps} {' '.join(args.overrides)}`".replace("  ", " ").replace(" `", "`")
+            + f" on {machine(args.device)}, git {git_rev()}; medians per step ({preset} preset, "
+            f"{tr.n_rays} rays per step).\n\n")
+    row = {k: round(v, 2) for k, v in m.items()}
+    md = head + md_table([row], ["wall_ms", "gpu_busy_ms", "gpu_idle_pct", "kernels", "copies", "syncs", "samples",
+                                 "samples_per_s_M"])
+    md += "\n\nKernels taking the most device time (ms per step, share of all kernel time):\n\n"
+    md += md_table([{k: (round(v, 3) if isinstance(v, float) else v) for k, v in r.items()}
+                    for r in res["top_kernels"]], ["kernel", "ms_per_step", "share_pct"])
+    (out / "step-profile.md").write_text(md + "\n")
+    write_json(out / "step-profile.json", {"args": vars(args), "machine": machine(args.device), "git": git_rev(),
+                                           "preset": preset, "rays": tr.n_rays, **res})
+    print(md)
+
+
+if __name__ == "__main__":
+    main()
