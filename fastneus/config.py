@@ -58,7 +58,7 @@ class Config:
     group_shots: bool = True           # one ray per viewpoint pixel carries its shots (one march and field
                                        # evaluation for all); false = every shot's pixels are separate rays
     shots_per_ray: int = 4             # shots rendered per ray and step, drawn at random (0 = all, in order)
-    init_geometry: str = "auto"        # auto | decode | sphere: start the SDF at the Gray-code decoder's surface
+    init_geometry: str = "auto"        # auto | decode | sphere: start the SDF at the decoded surface (Gray code; one-shot sweep)
                                        # when every viewpoint is a Gray-code sequence (fastneus/geometry_init.py)
     init_geometry_steps: int = 300     # SDF fit steps of that initialisation (counted in the training time)
 

@@ -1,0 +1,159 @@
+"""One-shot depth from a single structured-light photo: a plane sweep against the pattern.
+
+For a dense one-shot pattern (the colourful line: random binary-colour stripes) each camera
+pixel's neighbourhood is a code: the projector shows a different colour sequence at every
+depth along the pixel's ray. The sweep tries ``n_depths`` camera z-depths across the scene's
+bounds. At each depth it predicts what the projectors put on every pixel (the patterns,
+pre-blurred by the camera pixel's footprint on the projector image, summed over the frame's
+projectors). It scores the prediction against the photo by zero-mean normalised
+cross-correlation (ZNCC) over a window, per colour channel. ZNCC ignores the unknown albedo's
+gain and the ambient offset of each channel. Per pixel the best-scoring depth wins, refined by
+a parabola through its neighbours. It is kept only when the score is high and clearly better
+than the best score at any other depth (the pattern is random, so a wrong depth can match a
+window too).
+
+This is what the photometric optimisation cannot do from a sphere with one view: it searches
+every depth at once instead of following a gradient into the nearest minimum (which, for a
+striped pattern, is one stripe away). ``fastneus.geometry_init`` fits the SDF to these points
+before training (``init_geometry=auto`` on one-shot scenes); the neural training then refines
+them. torch only (CPU or GPU); one depth map per frame.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+
+def dense_pattern_frame(scene, i: int, min_lit: float = 0.3) -> bool:
+    """Whether frame ``i`` is lit by image projectors whose patterns cover at least ``min_lit`` of
+    their pixels (colourful lines, not sparse lines, grids or dots, and not laser planes)."""
+    act = scene.active_projectors(i)
+    if not act:
+        return False
+    for pid, pat in act:
+        if scene.projectors[pid].kind == "laser":
+            return False
+        img = scene.pattern_image(pat)
+        if float((img.max(axis=2) > 0).mean()) < min_lit:
+            return False
+    return True
+
+
+def _box(x: torch.Tensor, kh: int, kw: int) -> torch.Tensor:
+    """Mean over a kh x kw window (edges: over the part inside), x [B, C, H, W]."""
+    return F.avg_pool2d(x, (kh, kw), stride=1, padding=(kh // 2, kw // 2), count_include_pad=False)
+
+
+@torch.no_grad()
+def planesweep_depth(scene, i: int, n_depths: int = 256, window: tuple[int, int] | None = None,
+                     min_score: float = 0.6, min_margin: float = 0.05, device="cpu",
+                     chunk: int = 16) -> tuple[np.ndarray, np.ndarray]:
+    """Camera z-depth of frame ``i`` by a plane sweep against its projected patterns.
+
+    Args:
+        scene: the scene (frame ``i`` lit by one or more image projectors).
+        n_depths: depth hypotheses, uniform in z across the bounds sphere.
+        window: (rows, cols) of the ZNCC window; default scales with the image (7 x 7 up to 200 px).
+        min_score: smallest accepted ZNCC (mean over the informative channels).
+        min_margin: smallest lead of the best score over the best score farther than 3 depth
+            steps away (uniqueness).
+        device: torch device for the sweep. chunk: depths per batch.
+    Returns:
+        depth [H, W] float32 (world units, NaN where rejected), score [H, W] float32.
+    """
+    dev = torch.device(device)
+    img = torch.tensor(scene.image(i), dtype=torch.float32, device=dev).permute(2, 0, 1)[None] / 255.0  # [1,3,H,W]
+    H, W = img.shape[-2:]
+    cam = scene.frame_camera(i)
+    K = np.asarray(cam.K, dtype=np.float64)
+    c2w = scene.cam_to_world(i)
+    if window is None:
+        s = max(1.0, W / 200.0)
+        window = (2 * round(3 * s) + 1, 2 * round(3 * s) + 1)
+    kh, kw = window
+    # the depth range: the bounds sphere along the optical axis
+    ctr = np.linalg.inv(c2w) @ np.r_[np.asarray(scene.bounds.center, dtype=np.float64), 1.0]
+    r = float(scene.bounds.radius)
+    z0, z1 = max(float(ctr[2]) - r, 1e-3), float(ctr[2]) + r
+    zs = torch.linspace(z0, z1, n_depths, dtype=torch.float64, device=dev)
+    # camera rays at z = 1 in the camera frame, as world points X(z) = C + z * Rd
+    v, u = torch.meshgrid(torch.arange(H, device=dev, dtype=torch.float64) + 0.5,
+                          torch.arange(W, device=dev, dtype=torch.float64) + 0.5, indexing="ij")
+    d_cam = torch.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], torch.ones_like(u)], -1)  # [H,W,3]
+    R = torch.tensor(c2w[:3, :3], dtype=torch.float64, device=dev)
+    C = torch.tensor(c2w[:3, 3], dtype=torch.float64, device=dev)
+    d_w = d_cam @ R.T                                                                        # [H,W,3]
+    projs = []
+    for pid, pat in scene.active_projectors(i):
+        pj = scene.projectors[pid]
+        p = scene.pattern_image(pat).astype(np.float32) / 255.0
+        # a camera pixel covers ~ f_proj / f_cam projector pixels at equal distance: pre-blur by it
+        ratio = float(pj.K[0, 0]) / float(K[0, 0])
+        k = 2 * max(0, int(round((ratio - 1) / 2))) + 1  # odd: an even box would shift the pattern by half a pixel
+        if k > 1:
+            import cv2
+
+            p = cv2.blur(p, (k, k), borderType=cv2.BORDER_CONSTANT)
+        w2p = np.linalg.inv(scene.proj_to_world(i, pid))
+        projs.append((torch.tensor(p, device=dev).permute(2, 0, 1)[None],                       # [1,3,h,w]
+                      torch.tensor(pj.K, dtype=torch.float64, device=dev),
+                      torch.tensor(w2p, dtype=torch.float64, device=dev), p.shape[1], p.shape[0]))
+
+    def predict(zc: torch.Tensor) -> torch.Tensor:
+        """Projected light at depths zc [D]: [D, 3, H, W]."""
+        X = C + zc[:, None, None, None] * d_w[None]                                          # [D,H,W,3]
+        q = torch.zeros(zc.shape[0], 3, H, W, device=dev)
+        for pat, Kp, w2p, pw, ph in projs:
+            Xp = X @ w2p[:3, :3].T + w2p[:3, 3]
+            z = Xp[..., 2]
+            uv = (Xp @ Kp.T)[..., :2] / z.clamp_min(1e-9)[..., None]
+            # grid_sample's align_corners=False maps -1..1 to the outer pixel edges: x_pix = uv
+            g = torch.stack([uv[..., 0] / pw * 2 - 1, uv[..., 1] / ph * 2 - 1], -1).float()
+            s = F.grid_sample(pat.expand(zc.shape[0], -1, -1, -1), g, mode="bilinear", padding_mode="zeros",
+                              align_corners=False)
+            q += s * (z > 1e-6)[:, None].float()
+        return q
+
+    # foreground weights: the window statistics skip background pixels, so a window that
+    # straddles a silhouette still scores the object's part (thin parts: the torus's ring)
+    msk = scene.mask(i)
+    fg = (torch.tensor(msk, device=dev) > 0.5) if msk is not None else (img[0].max(0).values > 8 / 255.0)
+    M = fg.float().reshape(1, 1, H, W)
+    nM = _box(M, kh, kw).clamp_min(1e-6)
+    wbox = lambda x: _box(M * x, kh, kw) / nM  # noqa: E731
+    # photo statistics per channel (constant over depths)
+    mI = wbox(img)
+    vI = (wbox(img * img) - mI * mI).clamp_min(0)
+    best = torch.full((H, W), -2.0, device=dev)
+    best_k = torch.zeros((H, W), dtype=torch.long, device=dev)
+    scores = torch.empty((n_depths, H, W), device=dev)
+    for a in range(0, n_depths, chunk):
+        q = predict(zs[a:a + chunk])                                                         # [D,3,H,W]
+        mQ = wbox(q)
+        vQ = (wbox(q * q) - mQ * mQ).clamp_min(0)
+        cov = wbox(q * img) - mQ * mI
+        ok = (vQ > 1e-4) & (vI > 1e-5)
+        zn = torch.where(ok, cov / (vQ * vI).clamp_min(1e-12).sqrt(), torch.zeros_like(cov))
+        wsum = ok.float().sum(1)
+        sc = torch.where(wsum >= 2, zn.sum(1) / wsum.clamp_min(1), torch.full_like(wsum, -1.0))  # [D,H,W]
+        scores[a:a + sc.shape[0]] = sc
+    best, best_k = scores.max(0)
+    # uniqueness: the best score farther than 3 steps from the winner
+    idx = torch.arange(n_depths, device=dev)[:, None, None]
+    far = (idx - best_k[None]).abs() > 3
+    second = torch.where(far, scores, torch.full_like(scores, -2.0)).max(0).values
+    # sub-step refinement: a parabola through the winner and its neighbours
+    km = (best_k - 1).clamp(0, n_depths - 1)
+    kp = (best_k + 1).clamp(0, n_depths - 1)
+    s0, sm, sp = best, scores.gather(0, km[None])[0], scores.gather(0, kp[None])[0]
+    den = sm - 2 * s0 + sp
+    off = torch.where(den < -1e-9, 0.5 * (sm - sp) / den, torch.zeros_like(den)).clamp(-0.5, 0.5)
+    step = (z1 - z0) / max(n_depths - 1, 1)
+    z = (z0 + (best_k.double() + off.double()) * step).float()
+    keep = (best >= min_score) & (best - second >= min_margin) & (best_k > 0) & (best_k < n_depths - 1) \
+        & fg & (nM[0, 0] >= 0.3)
+    depth = torch.where(keep, z, torch.full_like(z, math.nan))
+    return depth.cpu().numpy().astype(np.float32), best.cpu().numpy().astype(np.float32)
