@@ -99,6 +99,19 @@ def sweepable_frames(scene, frames: list[int]) -> list[int] | None:
     return list(frames)
 
 
+def _background(scene, i: int, shape: tuple[int, int]) -> np.ndarray:
+    """Pixels that see nothing, on a grid of ``shape``: outside the mask, else black in the photo."""
+    import cv2
+
+    m = scene.mask(i)
+    img = scene.image(i)
+    if img.shape[:2] != tuple(shape):
+        size = (shape[1], shape[0])
+        m = None if m is None else cv2.resize(m.astype(np.float32), size, interpolation=cv2.INTER_AREA)
+        img = cv2.resize(img, size, interpolation=cv2.INTER_AREA)
+    return (m < 0.5) if m is not None else (img.max(axis=2) <= 2)
+
+
 def swept_points(scene, frames: list[int], device="cpu", max_free: int = 200_000) -> dict[str, np.ndarray]:
     """:func:`decoded_points` for one-shot frames: the surface from a plane sweep of each frame
     against its projected patterns; background rays from the mask (outside it) or, without one,
@@ -108,11 +121,9 @@ def swept_points(scene, frames: list[int], device="cpu", max_free: int = 200_000
     out: dict[str, list] = {"points": [], "dirs": [], "origins": [], "bg_origins": [], "bg_dirs": []}
     rng = np.random.default_rng(0)
     for i in frames:
-        z, _ = planesweep_depth(scene, i, device=device)
-        K = scene.frame_camera(i).K
+        z, _, K = planesweep_depth(scene, i, device=device)  # K of the swept (maybe downsampled) grid
         c2w = scene.cam_to_world(i)
-        m = scene.mask(i)
-        bg = (m < 0.5) if m is not None else (scene.image(i).max(axis=2) <= 2)
+        bg = _background(scene, i, z.shape)
         for key, (v, u) in (("", np.nonzero(np.isfinite(z))), ("bg_", np.nonzero(bg))):
             if key and v.size > max_free // len(frames):
                 sel = rng.choice(v.size, max_free // len(frames), replace=False)

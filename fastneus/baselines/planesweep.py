@@ -50,7 +50,7 @@ def _box(x: torch.Tensor, kh: int, kw: int) -> torch.Tensor:
 @torch.no_grad()
 def planesweep_depth(scene, i: int, n_depths: int = 256, window: tuple[int, int] | None = None,
                      min_score: float = 0.6, min_margin: float = 0.05, device="cpu",
-                     chunk: int = 16) -> tuple[np.ndarray, np.ndarray]:
+                     chunk: int = 16, max_width: int = 480) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Camera z-depth of frame ``i`` by a plane sweep against its projected patterns.
 
     Args:
@@ -61,14 +61,29 @@ def planesweep_depth(scene, i: int, n_depths: int = 256, window: tuple[int, int]
         min_margin: smallest lead of the best score over the best score farther than 3 depth
             steps away (uniqueness).
         device: torch device for the sweep. chunk: depths per batch.
+        max_width: wider photos are swept at this width (area-downsampled; the score volume is
+            n_depths x H x W floats, and an initialisation needs no more).
     Returns:
-        depth [H, W] float32 (world units, NaN where rejected), score [H, W] float32.
+        depth [h, w] float32 (world units, NaN where rejected), score [h, w] float32, and K [3, 3]
+        of that (possibly downsampled) pixel grid.
     """
+    import cv2
+
     dev = torch.device(device)
-    img = torch.tensor(scene.image(i), dtype=torch.float32, device=dev).permute(2, 0, 1)[None] / 255.0  # [1,3,H,W]
+    photo = scene.image(i)
+    msk = scene.mask(i)
+    K = np.asarray(scene.frame_camera(i).K, dtype=np.float64).copy()
+    if photo.shape[1] > max_width:
+        f = max_width / photo.shape[1]
+        size = (max_width, max(1, int(round(photo.shape[0] * f))))
+        fx, fy = size[0] / photo.shape[1], size[1] / photo.shape[0]
+        photo = cv2.resize(photo, size, interpolation=cv2.INTER_AREA)
+        if msk is not None:
+            msk = cv2.resize(msk.astype(np.float32), size, interpolation=cv2.INTER_AREA)
+        K[0] *= fx  # continuous pixel coordinates scale with the grid
+        K[1] *= fy
+    img = torch.tensor(photo, dtype=torch.float32, device=dev).permute(2, 0, 1)[None] / 255.0  # [1,3,H,W]
     H, W = img.shape[-2:]
-    cam = scene.frame_camera(i)
-    K = np.asarray(cam.K, dtype=np.float64)
     c2w = scene.cam_to_world(i)
     if window is None:
         s = max(1.0, W / 200.0)
@@ -94,8 +109,6 @@ def planesweep_depth(scene, i: int, n_depths: int = 256, window: tuple[int, int]
         ratio = float(pj.K[0, 0]) / float(K[0, 0])
         k = 2 * max(0, int(round((ratio - 1) / 2))) + 1  # odd: an even box would shift the pattern by half a pixel
         if k > 1:
-            import cv2
-
             p = cv2.blur(p, (k, k), borderType=cv2.BORDER_CONSTANT)
         w2p = np.linalg.inv(scene.proj_to_world(i, pid))
         projs.append((torch.tensor(p, device=dev).permute(2, 0, 1)[None],                       # [1,3,h,w]
@@ -119,7 +132,6 @@ def planesweep_depth(scene, i: int, n_depths: int = 256, window: tuple[int, int]
 
     # foreground weights: the window statistics skip background pixels, so a window that
     # straddles a silhouette still scores the object's part (thin parts: the torus's ring)
-    msk = scene.mask(i)
     fg = (torch.tensor(msk, device=dev) > 0.5) if msk is not None else (img[0].max(0).values > 8 / 255.0)
     M = fg.float().reshape(1, 1, H, W)
     nM = _box(M, kh, kw).clamp_min(1e-6)
@@ -156,4 +168,4 @@ def planesweep_depth(scene, i: int, n_depths: int = 256, window: tuple[int, int]
     keep = (best >= min_score) & (best - second >= min_margin) & (best_k > 0) & (best_k < n_depths - 1) \
         & fg & (nM[0, 0] >= 0.3)
     depth = torch.where(keep, z, torch.full_like(z, math.nan))
-    return depth.cpu().numpy().astype(np.float32), best.cpu().numpy().astype(np.float32)
+    return depth.cpu().numpy().astype(np.float32), best.cpu().numpy().astype(np.float32), K
