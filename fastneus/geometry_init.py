@@ -94,6 +94,10 @@ def sweepable_frames(scene, frames: list[int]) -> list[int] | None:
     groups = view_frames(scene, frames)
     if len(groups) > MAX_SWEEP_VIEWS or any(len(g) != 1 for g in groups.values()):
         return None
+    # the sweep's rays are straight: not behind a flat port (underwater), where they bend
+    if any(scene.frame_camera(i).port is not None for i in frames) or \
+            any(getattr(pj, "port", None) is not None for pj in scene.projectors.values()):
+        return None
     if not all(dense_pattern_frame(scene, i) for i in frames):
         return None
     return list(frames)

@@ -39,6 +39,14 @@ def test_dense_frames_and_the_auto_rule(colorline_scene, tmp_path):
     assert dense_pattern_frame(colorline_scene, 0)
     assert sweepable_frames(colorline_scene, [0]) == [0]
     assert sweepable_frames(colorline_scene, [0, 1]) == [0, 1]
+    import copy
+
+    from fastneus.data.scene import FlatPort
+
+    wet = copy.deepcopy(colorline_scene)  # behind a flat port the sweep's straight rays would be wrong
+    cam = wet.frame_camera(0)
+    cam.port = FlatPort(normal=np.array([0.0, 0.0, 1.0]), distance=0.05) if cam.port is None else cam.port
+    assert sweepable_frames(wet, [0]) is None
     sparse = synthesize(tmp_path / "x", shape="sphere", views=MAX_SWEEP_VIEWS + 1, size=(24, 24), pattern="crosslaser",
                         progress=False, contact_sheet=False)
     assert not dense_pattern_frame(sparse, 0)  # thin laser lines: not a one-shot code
