@@ -139,9 +139,7 @@ def planesweep_depth(scene, i: int, n_depths: int = 256, window: tuple[int, int]
     # photo statistics per channel (constant over depths)
     mI = wbox(img)
     vI = (wbox(img * img) - mI * mI).clamp_min(0)
-    best = torch.full((H, W), -2.0, device=dev)
-    best_k = torch.zeros((H, W), dtype=torch.long, device=dev)
-    scores = torch.empty((n_depths, H, W), device=dev)
+    scores = torch.empty((n_depths, H, W), device=dev)  # [D, H, W] mean ZNCC per depth
     for a in range(0, n_depths, chunk):
         q = predict(zs[a:a + chunk])                                                         # [D,3,H,W]
         mQ = wbox(q)
