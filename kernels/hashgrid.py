@@ -134,6 +134,20 @@ def _cell(u: float, res: int):
     return c, p - float(c)
 
 
+@wp.func
+def _corners(cx: int, cy: int, cz: int, r1: int, T: int, dense: int, base: int, F: int):
+    """Flat table offsets (entry * F) of the 8 vertices of cell (cx, cy, cz) in the level whose
+    table starts at entry ``base``, in the order 000, 100, 010, 110, 001, 101, 011, 111 (x fastest)."""
+    return ((base + _corner_index(cx, cy, cz, r1, T, dense)) * F,
+            (base + _corner_index(cx + 1, cy, cz, r1, T, dense)) * F,
+            (base + _corner_index(cx, cy + 1, cz, r1, T, dense)) * F,
+            (base + _corner_index(cx + 1, cy + 1, cz, r1, T, dense)) * F,
+            (base + _corner_index(cx, cy, cz + 1, r1, T, dense)) * F,
+            (base + _corner_index(cx + 1, cy, cz + 1, r1, T, dense)) * F,
+            (base + _corner_index(cx, cy + 1, cz + 1, r1, T, dense)) * F,
+            (base + _corner_index(cx + 1, cy + 1, cz + 1, r1, T, dense)) * F)
+
+
 @wp.kernel
 def _hash_fwd_kernel(
     u: wp.array(dtype=wp.vec3),  # [N]
@@ -159,15 +173,7 @@ def _hash_fwd_kernel(
     gx = 1.0 - fx
     gy = 1.0 - fy
     gz = 1.0 - fz
-    base = l * T
-    i000 = (base + _corner_index(cx, cy, cz, r1, T, dense)) * F
-    i100 = (base + _corner_index(cx + 1, cy, cz, r1, T, dense)) * F
-    i010 = (base + _corner_index(cx, cy + 1, cz, r1, T, dense)) * F
-    i110 = (base + _corner_index(cx + 1, cy + 1, cz, r1, T, dense)) * F
-    i001 = (base + _corner_index(cx, cy, cz + 1, r1, T, dense)) * F
-    i101 = (base + _corner_index(cx + 1, cy, cz + 1, r1, T, dense)) * F
-    i011 = (base + _corner_index(cx, cy + 1, cz + 1, r1, T, dense)) * F
-    i111 = (base + _corner_index(cx + 1, cy + 1, cz + 1, r1, T, dense)) * F
+    i000, i100, i010, i110, i001, i101, i011, i111 = _corners(cx, cy, cz, r1, T, dense, l * T, F)
     w000 = gx * gy * gz
     w100 = fx * gy * gz
     w010 = gx * fy * gz
@@ -214,15 +220,7 @@ def _hash_bwd_kernel(
     gx = 1.0 - fx
     gy = 1.0 - fy
     gz = 1.0 - fz
-    base = l * T
-    i000 = (base + _corner_index(cx, cy, cz, r1, T, dense)) * F
-    i100 = (base + _corner_index(cx + 1, cy, cz, r1, T, dense)) * F
-    i010 = (base + _corner_index(cx, cy + 1, cz, r1, T, dense)) * F
-    i110 = (base + _corner_index(cx + 1, cy + 1, cz, r1, T, dense)) * F
-    i001 = (base + _corner_index(cx, cy, cz + 1, r1, T, dense)) * F
-    i101 = (base + _corner_index(cx + 1, cy, cz + 1, r1, T, dense)) * F
-    i011 = (base + _corner_index(cx, cy + 1, cz + 1, r1, T, dense)) * F
-    i111 = (base + _corner_index(cx + 1, cy + 1, cz + 1, r1, T, dense)) * F
+    i000, i100, i010, i110, i001, i101, i011, i111 = _corners(cx, cy, cz, r1, T, dense, l * T, F)
     col = l * F
     if need_table != 0:
         w000 = gx * gy * gz
@@ -322,15 +320,7 @@ def _hash_jac_fwd_kernel(
     sx = _axis_scale(p[0], res)
     sy = _axis_scale(p[1], res)
     sz = _axis_scale(p[2], res)
-    base = l * T
-    i000 = (base + _corner_index(cx, cy, cz, r1, T, dense)) * F
-    i100 = (base + _corner_index(cx + 1, cy, cz, r1, T, dense)) * F
-    i010 = (base + _corner_index(cx, cy + 1, cz, r1, T, dense)) * F
-    i110 = (base + _corner_index(cx + 1, cy + 1, cz, r1, T, dense)) * F
-    i001 = (base + _corner_index(cx, cy, cz + 1, r1, T, dense)) * F
-    i101 = (base + _corner_index(cx + 1, cy, cz + 1, r1, T, dense)) * F
-    i011 = (base + _corner_index(cx, cy + 1, cz + 1, r1, T, dense)) * F
-    i111 = (base + _corner_index(cx + 1, cy + 1, cz + 1, r1, T, dense)) * F
+    i000, i100, i010, i110, i001, i101, i011, i111 = _corners(cx, cy, cz, r1, T, dense, l * T, F)
     w000 = gx * gy * gz
     w100 = fx * gy * gz
     w010 = gx * fy * gz
@@ -395,15 +385,7 @@ def _hash_jac_bwd_kernel(
     sx = _axis_scale(p[0], res)
     sy = _axis_scale(p[1], res)
     sz = _axis_scale(p[2], res)
-    base = l * T
-    i000 = (base + _corner_index(cx, cy, cz, r1, T, dense)) * F
-    i100 = (base + _corner_index(cx + 1, cy, cz, r1, T, dense)) * F
-    i010 = (base + _corner_index(cx, cy + 1, cz, r1, T, dense)) * F
-    i110 = (base + _corner_index(cx + 1, cy + 1, cz, r1, T, dense)) * F
-    i001 = (base + _corner_index(cx, cy, cz + 1, r1, T, dense)) * F
-    i101 = (base + _corner_index(cx + 1, cy, cz + 1, r1, T, dense)) * F
-    i011 = (base + _corner_index(cx, cy + 1, cz + 1, r1, T, dense)) * F
-    i111 = (base + _corner_index(cx + 1, cy + 1, cz + 1, r1, T, dense)) * F
+    i000, i100, i010, i110, i001, i101, i011, i111 = _corners(cx, cy, cz, r1, T, dense, l * T, F)
     col = l * F
     if need_table != 0:
         w000 = gx * gy * gz
