@@ -148,6 +148,16 @@ def _corners(cx: int, cy: int, cz: int, r1: int, T: int, dense: int, base: int, 
             (base + _corner_index(cx + 1, cy + 1, cz + 1, r1, T, dense)) * F)
 
 
+@wp.func
+def _weights(fx: float, fy: float, fz: float):
+    """Trilinear weights of the 8 cell vertices (order as :func:`_corners`) at fractions (fx, fy, fz)."""
+    gx = 1.0 - fx
+    gy = 1.0 - fy
+    gz = 1.0 - fz
+    return (gx * gy * gz, fx * gy * gz, gx * fy * gz, fx * fy * gz,
+            gx * gy * fz, fx * gy * fz, gx * fy * fz, fx * fy * fz)
+
+
 @wp.kernel
 def _hash_fwd_kernel(
     u: wp.array(dtype=wp.vec3),  # [N]
@@ -170,18 +180,8 @@ def _hash_fwd_kernel(
     cx, fx = _cell(p[0], res)
     cy, fy = _cell(p[1], res)
     cz, fz = _cell(p[2], res)
-    gx = 1.0 - fx
-    gy = 1.0 - fy
-    gz = 1.0 - fz
     i000, i100, i010, i110, i001, i101, i011, i111 = _corners(cx, cy, cz, r1, T, dense, l * T, F)
-    w000 = gx * gy * gz
-    w100 = fx * gy * gz
-    w010 = gx * fy * gz
-    w110 = fx * fy * gz
-    w001 = gx * gy * fz
-    w101 = fx * gy * fz
-    w011 = gx * fy * fz
-    w111 = fx * fy * fz
+    w000, w100, w010, w110, w001, w101, w011, w111 = _weights(fx, fy, fz)
     col = l * F
     for f in range(F):
         out[n, col + f] = (
@@ -223,14 +223,7 @@ def _hash_bwd_kernel(
     i000, i100, i010, i110, i001, i101, i011, i111 = _corners(cx, cy, cz, r1, T, dense, l * T, F)
     col = l * F
     if need_table != 0:
-        w000 = gx * gy * gz
-        w100 = fx * gy * gz
-        w010 = gx * fy * gz
-        w110 = fx * fy * gz
-        w001 = gx * gy * fz
-        w101 = fx * gy * fz
-        w011 = gx * fy * fz
-        w111 = fx * fy * fz
+        w000, w100, w010, w110, w001, w101, w011, w111 = _weights(fx, fy, fz)
         for f in range(F):
             g = grad_out[n, col + f]
             wp.atomic_add(grad_table, i000 + f, w000 * g)
@@ -321,14 +314,7 @@ def _hash_jac_fwd_kernel(
     sy = _axis_scale(p[1], res)
     sz = _axis_scale(p[2], res)
     i000, i100, i010, i110, i001, i101, i011, i111 = _corners(cx, cy, cz, r1, T, dense, l * T, F)
-    w000 = gx * gy * gz
-    w100 = fx * gy * gz
-    w010 = gx * fy * gz
-    w110 = fx * fy * gz
-    w001 = gx * gy * fz
-    w101 = fx * gy * fz
-    w011 = gx * fy * fz
-    w111 = fx * fy * fz
+    w000, w100, w010, w110, w001, w101, w011, w111 = _weights(fx, fy, fz)
     col = l * F
     for f in range(F):
         t000 = table[i000 + f]
@@ -388,14 +374,7 @@ def _hash_jac_bwd_kernel(
     i000, i100, i010, i110, i001, i101, i011, i111 = _corners(cx, cy, cz, r1, T, dense, l * T, F)
     col = l * F
     if need_table != 0:
-        w000 = gx * gy * gz
-        w100 = fx * gy * gz
-        w010 = gx * fy * gz
-        w110 = fx * fy * gz
-        w001 = gx * gy * fz
-        w101 = fx * gy * fz
-        w011 = gx * fy * fz
-        w111 = fx * fy * fz
+        w000, w100, w010, w110, w001, w101, w011, w111 = _weights(fx, fy, fz)
         for f in range(F):
             g = float(0.0)
             if has_gout != 0:
