@@ -58,19 +58,31 @@ def decoded_points(scene, groups: list[list[int]], max_free: int = 200_000) -> d
     """
     from fastneus.baselines.graycode import graycode_depth
 
+    def views():
+        for g in groups:
+            z = graycode_depth(scene, g)
+            dark = np.ones(z.shape, bool)
+            for j in g:
+                dark &= scene.image(j).max(axis=2) <= 2
+            yield z, scene.frame_camera(g[0]).K, scene.cam_to_world(g[0]), dark
+
+    return _rays_of_depths(views(), len(groups), max_free)
+
+
+def _rays_of_depths(views, n_views: int, max_free: int) -> dict[str, np.ndarray]:
+    """Surface points and free-space rays from per-view depth maps (the dict of :func:`decoded_points`).
+
+    Args:
+        views: iterable of (z [H, W] camera z-depth, NaN where unknown; K [3, 3] of that grid;
+            cam_to_world [4, 4]; bg [H, W] bool pixels that see nothing).
+        n_views: how many; max_free: background rays kept in all (a random subset per view).
+    """
     out: dict[str, list] = {"points": [], "dirs": [], "origins": [], "bg_origins": [], "bg_dirs": []}
     rng = np.random.default_rng(0)
-    for g in groups:
-        z = graycode_depth(scene, g)
-        i = g[0]
-        K = scene.frame_camera(i).K
-        c2w = scene.cam_to_world(i)
-        dark = np.ones(z.shape, bool)
-        for j in g:
-            dark &= scene.image(j).max(axis=2) <= 2
-        for key, (v, u) in (("", np.nonzero(np.isfinite(z))), ("bg_", np.nonzero(dark))):
-            if key and v.size > max_free // len(groups):
-                sel = rng.choice(v.size, max_free // len(groups), replace=False)
+    for z, K, c2w, bg in views:
+        for key, (v, u) in (("", np.nonzero(np.isfinite(z))), ("bg_", np.nonzero(bg))):
+            if key and v.size > max_free // n_views:
+                sel = rng.choice(v.size, max_free // n_views, replace=False)
                 v, u = v[sel], u[sel]
             d_cam = np.linalg.inv(K) @ np.stack([u + 0.5, v + 0.5, np.ones(u.size)])
             d = (c2w[:3, :3] @ d_cam).T
@@ -122,23 +134,12 @@ def swept_points(scene, frames: list[int], device="cpu", max_free: int = 200_000
     from black pixels."""
     from fastneus.baselines.planesweep import planesweep_depth
 
-    out: dict[str, list] = {"points": [], "dirs": [], "origins": [], "bg_origins": [], "bg_dirs": []}
-    rng = np.random.default_rng(0)
-    for i in frames:
-        z, _, K = planesweep_depth(scene, i, device=device)  # K of the swept (maybe downsampled) grid
-        c2w = scene.cam_to_world(i)
-        bg = _background(scene, i, z.shape)
-        for key, (v, u) in (("", np.nonzero(np.isfinite(z))), ("bg_", np.nonzero(bg))):
-            if key and v.size > max_free // len(frames):
-                sel = rng.choice(v.size, max_free // len(frames), replace=False)
-                v, u = v[sel], u[sel]
-            d_cam = np.linalg.inv(K) @ np.stack([u + 0.5, v + 0.5, np.ones(u.size)])
-            d = (c2w[:3, :3] @ d_cam).T
-            if not key:
-                out["points"].append((c2w[:3, :3] @ (d_cam * z[v, u]) + c2w[:3, 3:4]).T)
-            out[key + "dirs"].append(d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12))
-            out[key + "origins"].append(np.broadcast_to(c2w[:3, 3], d.shape))
-    return {k: np.concatenate(v) if v else np.zeros((0, 3)) for k, v in out.items()}
+    def views():
+        for i in frames:
+            z, _, K = planesweep_depth(scene, i, device=device)  # K of the swept (maybe downsampled) grid
+            yield z, K, scene.cam_to_world(i), _background(scene, i, z.shape)
+
+    return _rays_of_depths(views(), len(frames), max_free)
 
 
 def _sphere_chord(o: torch.Tensor, d: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
