@@ -40,6 +40,8 @@ class Projection:
         planes: [P, L, 12] packed light planes (``fastneus.kernels.project.pack_planes``).
         port: [P, 8] flat ports of the projectors (flag column 0 = in air), None = none has one.
         sigma: [3] attenuation of the projected light in the medium (fastneus.rig), None = none.
+        has_pattern: some frame shows a pattern image (host-side: the renderer asks it every step,
+            and asking ``pattern`` would sync with the device).
     """
 
     K: torch.Tensor
@@ -51,6 +53,7 @@ class Projection:
     planes: torch.Tensor | None = None
     port: torch.Tensor | None = None
     sigma: torch.Tensor | None = None
+    has_pattern: bool = True
 
 
 def build_projection(scene, frames: list[int], device, refraction: bool = True) -> Projection:
@@ -86,7 +89,7 @@ def build_projection(scene, frames: list[int], device, refraction: bool = True) 
     store = PatternStore([scene.pattern_image(p) for p in pat_ids], device) if pat_ids else \
         PatternStore([np.zeros((1, 1, 3), np.uint8)], device)
     t = lambda a, dt=torch.float32: torch.as_tensor(a, dtype=dt, device=device).contiguous()  # noqa: E731
-    proj = Projection(t(K), t(W), t(pat, torch.int32), store)
+    proj = Projection(t(K), t(W), t(pat, torch.int32), store, has_pattern=bool((pat >= 0).any()))
     if lasers:
         from fastneus.kernels.project import pack_planes
 

@@ -5,6 +5,8 @@ hash grid) and the render kernel; used by training, rendering and evaluation ali
 """
 from __future__ import annotations
 
+import functools
+
 import torch
 
 from fastneus.kernels import get_op
@@ -14,6 +16,15 @@ def _empty(n_rays: int, device, dtype=torch.float32, shots: int = 0) -> dict:
     z = lambda *s: torch.zeros(*s, device=device, dtype=dtype)  # noqa: E731
     return {"color": z(n_rays, shots, 3) if shots else z(n_rays, 3), "opacity": z(n_rays), "depth": z(n_rays), "texture": z(n_rays, 3),
             "normal": z(n_rays, 3), "grad": z(0, 3), "curv": None, "n_samples": 0}
+
+
+@functools.lru_cache(maxsize=16)
+def _identity_blur(n_proj: int, device) -> torch.Tensor:
+    """[P, 1] unit taps (plain pattern sampling in ``project_pattern``), made once per device:
+    the split pattern pass asks for it every step. Read-only: the op never writes its blur."""
+    from fastneus.kernels.project import identity_blur
+
+    return identity_blur(n_proj, device=device)
 
 
 def pattern_pass_split(cfg, device) -> bool:
@@ -70,7 +81,8 @@ def render_rays(field, bits: torch.Tensor, grid_res: int, proj, origins: torch.T
     blur, laser_on = getattr(proj, "blur", None), getattr(proj, "laser_on", None)
     port, sigma = getattr(proj, "port", None), getattr(proj, "sigma", None)
 
-    split = pattern_pass_split(cfg, device) and pattern_on
+    has_pattern = pattern_on and getattr(proj, "has_pattern", True)
+    split = pattern_pass_split(cfg, device) and has_pattern
 
     def light(f: torch.Tensor):
         """Projected light Q for frame rows ``f`` [B] computed apart (one thread per sample) and
@@ -78,11 +90,9 @@ def render_rays(field, bits: torch.Tensor, grid_res: int, proj, origins: torch.T
         if blur is None and laser_on is None and port is None and sigma is None and not split:
             return None
         q_ext, b = None, blur
-        if b is not None or port is not None or sigma is not None or split or bool((pat >= 0).any()):
+        if b is not None or port is not None or sigma is not None or has_pattern:
             if b is None:
-                from fastneus.kernels.project import identity_blur
-
-                b = identity_blur(pat.shape[1], device=device)
+                b = _identity_blur(pat.shape[1], device)
             q_ext = get_op("project_pattern", cfg.backend)(pos, ray_index, offsets, counts, f, proj.K, proj.W,
                                                            pat, proj.store, b, port=port, sigma=sigma)
         if laser_on is not None and pattern_on:
