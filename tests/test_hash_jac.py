@@ -22,15 +22,8 @@ from fastneus.kernels.hashgrid import (
     hash_encode_torch,
 )
 
-DEVICES = ["cpu", pytest.param("cuda", marks=pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA"))]
-
-# dense (coarse) and hashed (fine) levels, F = 2, 4 and 8 (as tests/test_hashgrid.py)
-CONFIGS = [
-    HashGridConfig(levels=4, features=2, log2_table=8, base_res=2, finest_res=16),
-    HashGridConfig(levels=6, features=4, log2_table=12, base_res=4, finest_res=64),
-    HashGridConfig(levels=5, features=8, log2_table=10, base_res=3, finest_res=300),
-]
-CFG_IDS = ["L4F2T8", "L6F4T12", "L5F8T10"]
+# dense (coarse) and hashed (fine) levels, F = 2, 4 and 8: the configs of the hash_encode tests
+from test_hashgrid import CFG_IDS, CONFIGS, DEVICES  # noqa: E402
 
 
 def _seed() -> int:
