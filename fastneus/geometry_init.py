@@ -150,55 +150,78 @@ def _sphere_chord(o: torch.Tensor, d: torch.Tensor) -> tuple[torch.Tensor, torch
     return (-b - disc).clamp_min(0), -b + disc
 
 
-def fit_sdf_to_points(field, points: torch.Tensor, dirs: torch.Tensor, origins: torch.Tensor, steps: int,
-                      bg_origins: torch.Tensor | None = None, bg_dirs: torch.Tensor | None = None,
-                      lr: float = 1e-2, batch: int = 8192, offset: float = 0.02,
-                      generator: torch.Generator | None = None) -> float:
-    """Fit the field's SDF to surface points seen along camera rays (normalised space).
+class SurfacePrior:
+    """Surface points seen along camera rays and background rays (normalised space), with the loss
+    that pulls an SDF's zero set onto them: the geometry init fits it alone, and training keeps it
+    as a fading prior (``prior_weight``) so the photometric loss refines the decoded surface rather
+    than drifting from it where one view leaves depth loosely constrained.
 
-    Loss per step on a random batch: |f(p)| (on the surface) + relu(offset/2 - f(p - offset d)) (just in
-    front is outside) + relu(f(p + offset d / 2) + offset/4) (just behind is inside) + relu(-f(q)) for q
-    uniform on the free part of the ray (camera to surface; whole chord for background rays) +
-    0.1 (|grad f| - 1)^2 on a quarter batch of surface and as many uniform points.
+    Args:
+        points, dirs, origins: [N, 3] float32 surface points, unit ray directions, camera centres.
+        bg_origins, bg_dirs: [M, 3] background rays (optional; the whole chord is free space).
+        offset: normalised distance of the in-front / behind probes.
+    """
+
+    def __init__(self, points: torch.Tensor, dirs: torch.Tensor, origins: torch.Tensor,
+                 bg_origins: torch.Tensor | None = None, bg_dirs: torch.Tensor | None = None, offset: float = 0.02):
+        self.points, self.dirs, self.origins, self.offset = points, dirs, origins, offset
+        self.t_surf = (points - origins).norm(dim=-1)
+        self.t_in, _ = _sphere_chord(origins, dirs)
+        self.nb = 0
+        if bg_dirs is not None and bg_dirs.shape[0]:
+            bg_in, bg_out = _sphere_chord(bg_origins, bg_dirs)
+            hit = bg_out > bg_in
+            self.bg_origins, self.bg_dirs, self.bg_in, self.bg_out = bg_origins[hit], bg_dirs[hit], bg_in[hit], bg_out[hit]
+            self.nb = int(self.bg_dirs.shape[0])
+
+    def __len__(self) -> int:
+        return int(self.points.shape[0])
+
+    def loss(self, field, m: int, generator: torch.Generator | None = None, eikonal: bool = True) -> torch.Tensor:
+        """|f(p)| (on the surface) + relu(offset/2 - f(p - offset d)) (just in front is outside) +
+        relu(f(p + offset d / 2) + offset/4) (just behind is inside) + relu(-f(q)) for q uniform on the
+        free part of a ray (camera to surface; whole chord for background rays) on a random batch of
+        ``m`` points (and m/2 background rays); with ``eikonal``, + 0.1 (|grad f| - 1)^2 on a quarter
+        batch of surface and as many uniform points. Plain L1 on every point: ignoring points far
+        from the current zero set (a robust prior) lets a drifting surface escape it, which on the
+        GPU study made one view 10x worse (docs/BENCHMARKS.md, issue 11). Returns a scalar."""
+        n, off, dev = len(self), self.offset, self.points.device
+        rand = lambda *s: torch.rand(*s, device=dev, generator=generator)  # noqa: E731
+        m = min(m, n)
+        idx = torch.randint(0, n, (m,), device=dev, generator=generator)
+        p, d = self.points[idx], self.dirs[idx]
+        lo, hi = self.t_in[idx], (self.t_surf[idx] - off).clamp_min(self.t_in[idx])
+        q = [self.origins[idx] + d * (lo + rand(m) * (hi - lo))[:, None]]
+        if self.nb:
+            j = torch.randint(0, self.nb, (m // 2,), device=dev, generator=generator)
+            q.append(self.bg_origins[j] + self.bg_dirs[j] * (self.bg_in[j] + rand(m // 2) * (self.bg_out[j] - self.bg_in[j]))[:, None])
+        q = torch.cat(q)
+        f = field.sdf(torch.cat([p, p - off * d, p + 0.5 * off * d, q]))
+        f0, f_out, f_in, f_free = f[:m], f[m:2 * m], f[2 * m:3 * m], f[3 * m:]
+        loss = (f0.abs().mean() + torch.relu(0.5 * off - f_out).mean() + torch.relu(f_in + 0.25 * off).mean()
+                + torch.relu(-f_free).mean())
+        if eikonal:
+            xr = rand(m // 4, 3) * 2 - 1
+            _, _, g, _ = field.sdf_and_grad(torch.cat([p[: m // 4], xr]))
+            loss = loss + 0.1 * ((g.norm(dim=-1) - 1) ** 2).mean()
+        return loss
+
+
+def fit_sdf_to_points(field, prior: SurfacePrior, steps: int, lr: float = 1e-2, batch: int = 8192,
+                      generator: torch.Generator | None = None) -> float:
+    """Fit the field's SDF to a :class:`SurfacePrior` (normalised space) with its own Adam.
 
     Args:
         field: :class:`fastneus.field.model.SDFField` (its own optimiser is not touched).
-        points, dirs, origins: [N, 3] float32 surface points, unit ray directions, camera centres.
-        steps: Adam steps. bg_origins, bg_dirs: [M, 3] background rays (optional).
-        lr: learning rate. batch: points per step. offset: normalised distance.
+        prior: the points and rays. steps: Adam steps. lr: learning rate. batch: points per step.
     Returns:
         the last loss.
     """
     params = [field.table] + list(field.sdf_net.parameters())
     opt = Adam(params, lr=lr, betas=(0.9, 0.99), eps=1e-15)
-    n = points.shape[0]
-    dev = points.device
-    t_surf = (points - origins).norm(dim=-1)
-    t_in, _ = _sphere_chord(origins, dirs)
-    nb = 0 if bg_dirs is None else bg_dirs.shape[0]
-    if nb:
-        bg_in, bg_out = _sphere_chord(bg_origins, bg_dirs)
-        hit = bg_out > bg_in
-        bg_origins, bg_dirs, bg_in, bg_out = bg_origins[hit], bg_dirs[hit], bg_in[hit], bg_out[hit]
-        nb = bg_dirs.shape[0]
     loss = torch.zeros(())
-    rand = lambda *s: torch.rand(*s, device=dev, generator=generator)  # noqa: E731
     for _ in range(steps):
-        m = min(batch, n)
-        idx = torch.randint(0, n, (m,), device=dev, generator=generator)
-        p, d = points[idx], dirs[idx]
-        lo, hi = t_in[idx], (t_surf[idx] - offset).clamp_min(t_in[idx])
-        q = [origins[idx] + d * (lo + rand(m) * (hi - lo))[:, None]]
-        if nb:
-            j = torch.randint(0, nb, (m // 2,), device=dev, generator=generator)
-            q.append(bg_origins[j] + bg_dirs[j] * (bg_in[j] + rand(m // 2) * (bg_out[j] - bg_in[j]))[:, None])
-        q = torch.cat(q)
-        f = field.sdf(torch.cat([p, p - offset * d, p + 0.5 * offset * d, q]))
-        f0, f_out, f_in, f_free = f[:m], f[m:2 * m], f[2 * m:3 * m], f[3 * m:]
-        xr = rand(m // 4, 3) * 2 - 1
-        _, _, g, _ = field.sdf_and_grad(torch.cat([p[: m // 4], xr]))
-        loss = (f0.abs().mean() + torch.relu(0.5 * offset - f_out).mean() + torch.relu(f_in + 0.25 * offset).mean()
-                + torch.relu(-f_free).mean() + 0.1 * ((g.norm(dim=-1) - 1) ** 2).mean())
+        loss = prior.loss(field, batch, generator)
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()
@@ -241,8 +264,11 @@ def initialise_geometry(trainer) -> str | None:
     cfg.c2f_start_levels = 0  # see the module docstring; recorded in the run's config
     trainer.field.set_progress(0.0)
     batch = int(min(8192, max(1024, cfg.target_samples // 8)))
-    loss = fit_sdf_to_points(trainer.field, P, D, O, cfg.init_geometry_steps, bg_origins=tt(norm(dec["bg_origins"])),
-                             bg_dirs=tt(dec["bg_dirs"]), lr=cfg.lr, batch=batch, generator=trainer.gen)
+    prior = SurfacePrior(P, D, O, bg_origins=tt(norm(dec["bg_origins"])), bg_dirs=tt(dec["bg_dirs"]))
+    loss = fit_sdf_to_points(trainer.field, prior, cfg.init_geometry_steps, lr=cfg.lr, batch=batch,
+                             generator=trainer.gen)
+    if cfg.prior_weight > 0:
+        trainer.prior, trainer.prior_batch = prior, max(512, batch // 2)
     return (f"geometry init: {mode} -> {what} ({P.shape[0]} points from {n_src}, "
             f"{cfg.init_geometry_steps} fit steps, loss {loss:.4f}, {time.perf_counter() - t:.1f} s of the budget); "
             "coarse-to-fine off")

@@ -145,6 +145,7 @@ class Trainer:
         self.gen = torch.Generator(device=self.device)
         self.gen.manual_seed(cfg.seed)
         self.stop_signal: str | None = None  # set by interrupt.stop_on_signal: stop after this step
+        self.prior = None  # geometry_init.SurfacePrior kept as a fading prior after a decoded/swept init
         self.clock = None  # fastneus.timing.RunClock of the run (pipeline.train_scene): fit() records its phases
 
     # ------------------------------------------------------------------ helpers
@@ -258,6 +259,9 @@ class Trainer:
             ramp = min(1.0, (p - c.bg_start_frac) / c.bg_start_frac) if c.bg_start_frac > 0 else 1.0
             op = out["opacity"].clamp(max=1 - 1e-3)
             loss = loss - ramp * c.bg_weight * (batch["bg"] * torch.log1p(-op)).mean()
+        if self.prior is not None and p < c.prior_frac:
+            w = c.prior_weight * (1.0 - p / c.prior_frac)
+            loss = loss + w * self.prior.loss(self.field, self.prior_batch, self.gen, eikonal=False)
         if c.curvature_weight > 0 and out["curv"] is not None:
             loss = loss + c.curvature_weight * out["curv"].abs().mean()
         self.opt.zero_grad(set_to_none=True)
