@@ -14,6 +14,11 @@ as the colourful lines) get the same from a plane sweep of each photo against it
 photometric optimisation free to settle a stripe away from the truth (the toy's torus at 3.7 %
 depth error).
 
+Thin coloured lines (cross lasers from image projectors) are no code, but along one camera ray
+only a few light sheets are crossed inside the bounds: :mod:`fastneus.baselines.laserlines`
+labels the lit pixels with their sheet (unique candidates, then by neighbours), and those points
+initialise the surface where the lines fall (2 or 3 viewpoints; one view's lines are too sparse).
+
 ``init_geometry``: ``auto`` (decode when every training viewpoint is a decodable Gray-code
 sequence or the run is such a one-shot, else the sphere), ``decode`` (required; error otherwise)
 or ``sphere``. The decoding and fit time counts toward the run's training time.
@@ -74,17 +79,19 @@ def _rays_of_depths(views, n_views: int, max_free: int) -> dict[str, np.ndarray]
 
     Args:
         views: iterable of (z [H, W] camera z-depth, NaN where unknown; K [3, 3] of that grid;
-            cam_to_world [4, 4]; bg [H, W] bool pixels that see nothing).
+            cam_to_world [4, 4]; bg [H, W] bool pixels that see nothing; optionally uv [H, W, 2],
+            the sub-pixel image point whose ray z belongs to, instead of the pixel centre).
         n_views: how many; max_free: background rays kept in all (a random subset per view).
     """
     out: dict[str, list] = {"points": [], "dirs": [], "origins": [], "bg_origins": [], "bg_dirs": []}
     rng = np.random.default_rng(0)
-    for z, K, c2w, bg in views:
+    for z, K, c2w, bg, *sub in views:
         for key, (v, u) in (("", np.nonzero(np.isfinite(z))), ("bg_", np.nonzero(bg))):
             if key and v.size > max_free // n_views:
                 sel = rng.choice(v.size, max_free // n_views, replace=False)
                 v, u = v[sel], u[sel]
-            d_cam = np.linalg.inv(K) @ np.stack([u + 0.5, v + 0.5, np.ones(u.size)])
+            x, y = (sub[0][v, u, 0], sub[0][v, u, 1]) if sub and not key else (u + 0.5, v + 0.5)
+            d_cam = np.linalg.inv(K) @ np.stack([x, y, np.ones(u.size)])
             d = (c2w[:3, :3] @ d_cam).T
             if not key:
                 out["points"].append((c2w[:3, :3] @ (d_cam * z[v, u]) + c2w[:3, 3:4]).T)
@@ -113,6 +120,44 @@ def sweepable_frames(scene, frames: list[int]) -> list[int] | None:
     if not all(dense_pattern_frame(scene, i) for i in frames):
         return None
     return list(frames)
+
+
+MIN_LINE_VIEWS = 2  # one view of labelled lines: H100 10 s 4.8 -> 7.3 % (CPU 6.6 -> 3.2 %); 3 views 2.2 -> 1.3 %
+
+
+def line_frames(scene, frames: list[int]) -> list[int] | None:
+    """:func:`sweepable_frames` for thin-line one-shot patterns (cross lasers, image projectors):
+    the training frames when the run has ``MIN_LINE_VIEWS`` to ``MAX_SWEEP_VIEWS`` viewpoints of
+    one frame each, every one lit only by sparse line patterns
+    (:func:`fastneus.baselines.laserlines.sparse_line_frame`) and no flat port, else None. With
+    one view the labelled lines are a few curves; fitted alone they leave blobs between them,
+    which the GPU's 10-s run does not recover from (docs/BENCHMARKS.md, issue 11)."""
+    from fastneus.baselines.laserlines import sparse_line_frame
+    from fastneus.export.depth import view_frames
+
+    groups = view_frames(scene, frames)
+    if not MIN_LINE_VIEWS <= len(groups) <= MAX_SWEEP_VIEWS or any(len(g) != 1 for g in groups.values()):
+        return None
+    if any(scene.frame_camera(i).port is not None for i in frames) or \
+            any(getattr(pj, "port", None) is not None for pj in scene.projectors.values()):
+        return None
+    if not all(sparse_line_frame(scene, i) for i in frames):
+        return None
+    return list(frames)
+
+
+def lined_points(scene, frames: list[int], device="cpu", max_free: int = 200_000) -> dict[str, np.ndarray]:
+    """:func:`decoded_points` for thin-line one-shot frames: the line-lit pixels labelled with their
+    light sheet (:func:`fastneus.baselines.laserlines.laser_line_depth`); background as
+    :func:`swept_points`."""
+    from fastneus.baselines.laserlines import laser_line_depth
+
+    def views():
+        for i in frames:
+            z, uv, K = laser_line_depth(scene, i, device=device)
+            yield z, K, scene.cam_to_world(i), _background(scene, i, z.shape), uv
+
+    return _rays_of_depths(views(), len(frames), max_free)
 
 
 def _background(scene, i: int, shape: tuple[int, int]) -> np.ndarray:
@@ -237,11 +282,13 @@ def initialise_geometry(trainer) -> str | None:
         return None
     groups = decodable_views(trainer.scene, trainer.frames)
     swept = None if groups is not None else sweepable_frames(trainer.scene, trainer.frames)
-    if groups is None and swept is None:
+    lined = None if groups is not None or swept is not None else line_frames(trainer.scene, trainer.frames)
+    if groups is None and swept is None and lined is None:
         if mode == "decode":
             raise FastneusError("init_geometry=decode needs every training viewpoint to be one projector's "
                                 "complete Gray-code sequence, or at most "
-                                f"{MAX_SWEEP_VIEWS} viewpoints lit by a dense one-shot pattern (colourful lines)",
+                                f"{MAX_SWEEP_VIEWS} viewpoints lit by a dense one-shot pattern (colourful lines) "
+                                "or by thin coloured lines (cross lasers)",
                                 field="init_geometry")
         return None
     t = time.perf_counter()
@@ -249,9 +296,12 @@ def initialise_geometry(trainer) -> str | None:
     if groups is not None:
         dec, what = decoded_points(scene, groups), "decoded Gray code"
         n_src = f"{len(groups)} view(s)"
-    else:
+    elif swept is not None:
         dec, what = swept_points(scene, swept, device=trainer.device), "plane sweep of the one-shot pattern"
         n_src = f"{len(swept)} frame(s)"
+    else:
+        dec, what = lined_points(scene, lined, device=trainer.device), "labelled lines of the one-shot pattern"
+        n_src = f"{len(lined)} frame(s)"
     if len(dec["points"]) < 100:
         return f"geometry init: {mode} -> sphere (the {what} found only {len(dec['points'])} points)"
     b = scene.bounds
