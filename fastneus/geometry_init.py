@@ -103,47 +103,44 @@ def _rays_of_depths(views, n_views: int, max_free: int) -> dict[str, np.ndarray]
 MAX_SWEEP_VIEWS = 3  # the plane sweep initialises one-shot / few-view runs; more views find the surface anyway
 
 
-def sweepable_frames(scene, frames: list[int]) -> list[int] | None:
-    """The training frames when the run has at most ``MAX_SWEEP_VIEWS`` viewpoints of one frame
-    each (one-shot: a partial multi-shot sequence is no code frame by frame) and every frame is
-    lit by a dense pattern (:func:`fastneus.baselines.planesweep.dense_pattern_frame`), else None."""
-    from fastneus.baselines.planesweep import dense_pattern_frame
+def _one_shot_frames(scene, frames: list[int], lit_by, min_views: int) -> list[int] | None:
+    """The training frames when the run has ``min_views`` to ``MAX_SWEEP_VIEWS`` viewpoints of one
+    frame each (one-shot: a partial multi-shot sequence is no code frame by frame), no flat port
+    (the sweeps' rays are straight; behind a port, underwater, they bend) and ``lit_by(scene, i)``
+    holds for every frame, else None."""
     from fastneus.export.depth import view_frames
 
     groups = view_frames(scene, frames)
-    if len(groups) > MAX_SWEEP_VIEWS or any(len(g) != 1 for g in groups.values()):
+    if not min_views <= len(groups) <= MAX_SWEEP_VIEWS or any(len(g) != 1 for g in groups.values()):
         return None
-    # the sweep's rays are straight: not behind a flat port (underwater), where they bend
     if any(scene.frame_camera(i).port is not None for i in frames) or \
             any(getattr(pj, "port", None) is not None for pj in scene.projectors.values()):
         return None
-    if not all(dense_pattern_frame(scene, i) for i in frames):
+    if not all(lit_by(scene, i) for i in frames):
         return None
     return list(frames)
+
+
+def sweepable_frames(scene, frames: list[int]) -> list[int] | None:
+    """:func:`_one_shot_frames` for a dense pattern (:func:`fastneus.baselines.planesweep.dense_pattern_frame`),
+    1 to ``MAX_SWEEP_VIEWS`` viewpoints."""
+    from fastneus.baselines.planesweep import dense_pattern_frame
+
+    return _one_shot_frames(scene, frames, dense_pattern_frame, 1)
 
 
 MIN_LINE_VIEWS = 2  # one view of labelled lines: H100 10 s 4.8 -> 7.3 % (CPU 6.6 -> 3.2 %); 3 views 2.2 -> 1.3 %
 
 
 def line_frames(scene, frames: list[int]) -> list[int] | None:
-    """:func:`sweepable_frames` for thin-line one-shot patterns (cross lasers, image projectors):
-    the training frames when the run has ``MIN_LINE_VIEWS`` to ``MAX_SWEEP_VIEWS`` viewpoints of
-    one frame each, every one lit only by sparse line patterns
-    (:func:`fastneus.baselines.laserlines.sparse_line_frame`) and no flat port, else None. With
-    one view the labelled lines are a few curves; fitted alone they leave blobs between them,
-    which the GPU's 10-s run does not recover from (docs/BENCHMARKS.md, issue 11)."""
+    """:func:`_one_shot_frames` for thin-line patterns (cross lasers from image projectors,
+    :func:`fastneus.baselines.laserlines.sparse_line_frame`), ``MIN_LINE_VIEWS`` to
+    ``MAX_SWEEP_VIEWS`` viewpoints. With one view the labelled lines are a few curves; fitted alone
+    they leave blobs between them, which the GPU's 10-s run does not recover from
+    (docs/BENCHMARKS.md, issue 11)."""
     from fastneus.baselines.laserlines import sparse_line_frame
-    from fastneus.export.depth import view_frames
 
-    groups = view_frames(scene, frames)
-    if not MIN_LINE_VIEWS <= len(groups) <= MAX_SWEEP_VIEWS or any(len(g) != 1 for g in groups.values()):
-        return None
-    if any(scene.frame_camera(i).port is not None for i in frames) or \
-            any(getattr(pj, "port", None) is not None for pj in scene.projectors.values()):
-        return None
-    if not all(sparse_line_frame(scene, i) for i in frames):
-        return None
-    return list(frames)
+    return _one_shot_frames(scene, frames, sparse_line_frame, MIN_LINE_VIEWS)
 
 
 def lined_points(scene, frames: list[int], device="cpu", max_free: int = 200_000) -> dict[str, np.ndarray]:

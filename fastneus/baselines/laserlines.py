@@ -41,21 +41,14 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from fastneus.baselines.planesweep import _box
+from fastneus.baselines.planesweep import _box, lit_shares, photo_grid
 
 
 def sparse_line_frame(scene, i: int, max_lit: float = 0.3) -> bool:
     """Whether frame ``i`` is lit only by image projectors whose patterns light less than ``max_lit``
     of their pixels (thin lines, a grid, dots), at least one of them."""
-    act = scene.active_projectors(i)
-    if not act:
-        return False
-    for pid, pat in act:
-        if scene.projectors[pid].kind == "laser":
-            return False
-        if float((scene.pattern_image(pat).max(axis=2) > 0).mean()) >= max_lit:
-            return False
-    return True
+    shares = lit_shares(scene, i)
+    return shares is not None and max(shares) < max_lit
 
 
 @torch.no_grad()
@@ -84,21 +77,8 @@ def laser_line_depth(scene, i: int, n_depths: int = 1024, device="cpu", max_widt
         sub-pixel image point (continuous pixel coordinates) whose ray has that depth, and K [3, 3]
         of that (possibly downsampled) pixel grid.
     """
-    import cv2
-
     dev = torch.device(device)
-    photo = scene.image(i)
-    msk = scene.mask(i)
-    K = np.asarray(scene.frame_camera(i).K, dtype=np.float64).copy()
-    if photo.shape[1] > max_width:
-        f = max_width / photo.shape[1]
-        size = (max_width, max(1, int(round(photo.shape[0] * f))))
-        fx, fy = size[0] / photo.shape[1], size[1] / photo.shape[0]
-        photo = cv2.resize(photo, size, interpolation=cv2.INTER_AREA)
-        if msk is not None:
-            msk = cv2.resize(msk.astype(np.float32), size, interpolation=cv2.INTER_AREA)
-        K[0] *= fx
-        K[1] *= fy
+    photo, msk, K = photo_grid(scene, i, max_width)
     img = torch.tensor(photo, dtype=torch.float32, device=dev) / 255.0                    # [H,W,3]
     H, W = img.shape[:2]
     fg = (torch.tensor(msk, device=dev) > 0.5) if msk is not None else (img.max(-1).values > 2 / 255.0)

@@ -27,19 +27,40 @@ import torch
 import torch.nn.functional as F
 
 
+def lit_shares(scene, i: int) -> list[float] | None:
+    """Share of lit pixels of each pattern that lights frame ``i`` (one per active projector), or
+    None when no projector is active or one of them is a laser-plane projector (no pattern image)."""
+    act = scene.active_projectors(i)
+    if not act or any(scene.projectors[pid].kind == "laser" for pid, _ in act):
+        return None
+    return [float((scene.pattern_image(pat).max(axis=2) > 0).mean()) for _, pat in act]
+
+
 def dense_pattern_frame(scene, i: int, min_lit: float = 0.3) -> bool:
     """Whether frame ``i`` is lit by image projectors whose patterns cover at least ``min_lit`` of
     their pixels (colourful lines, not sparse lines, grids or dots, and not laser planes)."""
-    act = scene.active_projectors(i)
-    if not act:
-        return False
-    for pid, pat in act:
-        if scene.projectors[pid].kind == "laser":
-            return False
-        img = scene.pattern_image(pat)
-        if float((img.max(axis=2) > 0).mean()) < min_lit:
-            return False
-    return True
+    shares = lit_shares(scene, i)
+    return shares is not None and min(shares) >= min_lit
+
+
+def photo_grid(scene, i: int, max_width: int) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
+    """Frame ``i``'s photo [h, w, 3] uint8, mask [h, w] (or None) and K [3, 3], area-downsampled to
+    ``max_width`` when wider (K scaled with the grid)."""
+    import cv2
+
+    photo = scene.image(i)
+    msk = scene.mask(i)
+    K = np.asarray(scene.frame_camera(i).K, dtype=np.float64).copy()
+    if photo.shape[1] > max_width:
+        f = max_width / photo.shape[1]
+        size = (max_width, max(1, int(round(photo.shape[0] * f))))
+        fx, fy = size[0] / photo.shape[1], size[1] / photo.shape[0]
+        photo = cv2.resize(photo, size, interpolation=cv2.INTER_AREA)
+        if msk is not None:
+            msk = cv2.resize(msk.astype(np.float32), size, interpolation=cv2.INTER_AREA)
+        K[0] *= fx  # continuous pixel coordinates scale with the grid
+        K[1] *= fy
+    return photo, msk, K
 
 
 def _box(x: torch.Tensor, kh: int, kw: int) -> torch.Tensor:
@@ -70,18 +91,7 @@ def planesweep_depth(scene, i: int, n_depths: int = 256, window: tuple[int, int]
     import cv2
 
     dev = torch.device(device)
-    photo = scene.image(i)
-    msk = scene.mask(i)
-    K = np.asarray(scene.frame_camera(i).K, dtype=np.float64).copy()
-    if photo.shape[1] > max_width:
-        f = max_width / photo.shape[1]
-        size = (max_width, max(1, int(round(photo.shape[0] * f))))
-        fx, fy = size[0] / photo.shape[1], size[1] / photo.shape[0]
-        photo = cv2.resize(photo, size, interpolation=cv2.INTER_AREA)
-        if msk is not None:
-            msk = cv2.resize(msk.astype(np.float32), size, interpolation=cv2.INTER_AREA)
-        K[0] *= fx  # continuous pixel coordinates scale with the grid
-        K[1] *= fy
+    photo, msk, K = photo_grid(scene, i, max_width)
     img = torch.tensor(photo, dtype=torch.float32, device=dev).permute(2, 0, 1)[None] / 255.0  # [1,3,H,W]
     H, W = img.shape[-2:]
     c2w = scene.cam_to_world(i)
