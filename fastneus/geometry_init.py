@@ -271,11 +271,14 @@ def fit_sdf_to_points(field, prior: SurfacePrior, steps: int, lr: float = 1e-2, 
 
 
 def initialise_geometry(trainer) -> str | None:
-    """Apply ``init_geometry`` to a fresh trainer (step 0). Returns a one-line note, or None when the
-    sphere initialisation stays (nothing to say)."""
+    """Apply ``init_geometry`` to a fresh trainer (step 0): fit the SDF to the decoded points and keep
+    them as the prior. On a resumed trainer (step > 0) only the prior is rebuilt (no fit), while it
+    still has weight, so a resumed run goes on as it would have. Returns a one-line note, or None
+    when the sphere initialisation stays (nothing to say)."""
     cfg = trainer.cfg
     mode = getattr(cfg, "init_geometry", "sphere")
-    if mode == "sphere" or trainer.step != 0:
+    resumed = trainer.step != 0
+    if mode == "sphere" or resumed and (cfg.prior_weight <= 0 or trainer.progress() >= cfg.prior_frac):
         return None
     groups = decodable_views(trainer.scene, trainer.frames)
     swept = None if groups is not None else sweepable_frames(trainer.scene, trainer.frames)
@@ -308,10 +311,14 @@ def initialise_geometry(trainer) -> str | None:
     f32 = dict(dtype=torch.float32, device=trainer.device)
     tt = lambda a: torch.tensor(np.ascontiguousarray(a), **f32)  # noqa: E731
     P, D, O = tt(pn[keep]), tt(dec["dirs"][keep]), tt(norm(dec["origins"][keep]))
-    cfg.c2f_start_levels = 0  # see the module docstring; recorded in the run's config
-    trainer.field.set_progress(0.0)
     batch = int(min(8192, max(1024, cfg.target_samples // 8)))
     prior = SurfacePrior(P, D, O, bg_origins=tt(norm(dec["bg_origins"])), bg_dirs=tt(dec["bg_dirs"]))
+    if resumed:
+        trainer.prior, trainer.prior_batch = prior, max(512, batch // 2)
+        return (f"geometry prior rebuilt on resume: {what} ({P.shape[0]} points from {n_src}, "
+                f"{time.perf_counter() - t:.1f} s)")
+    cfg.c2f_start_levels = 0  # see the module docstring; recorded in the run's config
+    trainer.field.set_progress(0.0)
     loss = fit_sdf_to_points(trainer.field, prior, cfg.init_geometry_steps, lr=cfg.lr, batch=batch,
                              generator=trainer.gen)
     if cfg.prior_weight > 0:

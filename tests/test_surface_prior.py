@@ -88,3 +88,27 @@ def test_prior_weight_is_validated():
         load_config("cpu-quick", ["prior_weight=-1"])
     with pytest.raises(FastneusError, match="prior_frac"):
         load_config("cpu-quick", ["prior_frac=0"])
+
+
+def test_a_resumed_run_gets_the_prior_back_without_a_new_fit(tmp_path):
+    from fastneus.geometry_init import initialise_geometry
+    from fastneus.synth import synthesize
+    from fastneus.train.trainer import Trainer, trainer_from_run
+
+    s = synthesize(tmp_path / "g", shape="toy", views=1, size=(48, 48), pattern="graycode", seed=3, progress=False,
+                   contact_sheet=False)
+    cfg = load_config("cpu-quick", ["levels=8", "log2_table=14", "init_geometry_steps=20", "steps=6",
+                                    "target_samples=16384", "occ_resolution=32", "log_every=1000"])
+    tr = Trainer(s, cfg, tmp_path / "run", "cpu")
+    tr.fit()
+    assert tr.prior is not None
+    again = trainer_from_run(s, tmp_path / "run", "cpu")
+    assert again.step == 6 and again.prior is None
+    before = [p.detach().clone() for p in again.field.parameters()]
+    note = initialise_geometry(again)
+    assert note is not None and "rebuilt on resume" in note
+    assert again.prior is not None and len(again.prior) == len(tr.prior)
+    assert all(torch.equal(a, b) for a, b in zip(before, again.field.parameters()))  # no second fit
+    off = trainer_from_run(s, tmp_path / "run", "cpu", cfg=load_config("cpu-quick", [
+        "levels=8", "log2_table=14", "steps=6", "prior_weight=0", "target_samples=16384", "occ_resolution=32"]))
+    assert initialise_geometry(off) is None and off.prior is None
