@@ -31,6 +31,7 @@ import numpy as np
 import torch
 
 from fastneus.errors import FastneusError
+from fastneus.projection import unit_sphere_chord
 from fastneus.train.adam import Adam
 
 
@@ -184,14 +185,6 @@ def swept_points(scene, frames: list[int], device="cpu", max_free: int = 200_000
     return _rays_of_depths(views(), len(frames), max_free)
 
 
-def _sphere_chord(o: torch.Tensor, d: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """Entry and exit distances of rays (unit d) through the unit sphere (entry >= 0; exit < entry = miss)."""
-    b = (o * d).sum(-1)
-    c = (o * o).sum(-1) - 1.0
-    disc = (b * b - c).clamp_min(0).sqrt()
-    return (-b - disc).clamp_min(0), -b + disc
-
-
 class SurfacePrior:
     """Surface points seen along camera rays and background rays (normalised space), with the loss
     that pulls an SDF's zero set onto them: the geometry init fits it alone, and training keeps it
@@ -208,10 +201,10 @@ class SurfacePrior:
                  bg_origins: torch.Tensor | None = None, bg_dirs: torch.Tensor | None = None, offset: float = 0.02):
         self.points, self.dirs, self.origins, self.offset = points, dirs, origins, offset
         self.t_surf = (points - origins).norm(dim=-1)
-        self.t_in, _ = _sphere_chord(origins, dirs)
+        self.t_in, _ = unit_sphere_chord(origins, dirs)
         self.nb = 0
         if bg_dirs is not None and bg_dirs.shape[0]:
-            bg_in, bg_out = _sphere_chord(bg_origins, bg_dirs)
+            bg_in, bg_out = unit_sphere_chord(bg_origins, bg_dirs)
             hit = bg_out > bg_in
             self.bg_origins, self.bg_dirs, self.bg_in, self.bg_out = bg_origins[hit], bg_dirs[hit], bg_in[hit], bg_out[hit]
             self.nb = int(self.bg_dirs.shape[0])
@@ -247,6 +240,12 @@ class SurfacePrior:
             _, _, g, _ = field.sdf_and_grad(torch.cat([p[: m // 4], xr]))
             loss = loss + 0.1 * ((g.norm(dim=-1) - 1) ** 2).mean()
         return loss
+
+
+def fit_batch(cfg) -> int:
+    """Points per step of the init fit (an eighth of the step's sample budget, 1024-8192); the
+    training prior uses half of it."""
+    return int(min(8192, max(1024, cfg.target_samples // 8)))
 
 
 def fit_sdf_to_points(field, prior: SurfacePrior, steps: int, lr: float = 1e-2, batch: int = 8192,
@@ -311,10 +310,10 @@ def initialise_geometry(trainer) -> str | None:
     f32 = dict(dtype=torch.float32, device=trainer.device)
     tt = lambda a: torch.tensor(np.ascontiguousarray(a), **f32)  # noqa: E731
     P, D, O = tt(pn[keep]), tt(dec["dirs"][keep]), tt(norm(dec["origins"][keep]))
-    batch = int(min(8192, max(1024, cfg.target_samples // 8)))
+    batch = fit_batch(cfg)
     prior = SurfacePrior(P, D, O, bg_origins=tt(norm(dec["bg_origins"])), bg_dirs=tt(dec["bg_dirs"]))
     if resumed:
-        trainer.prior, trainer.prior_batch = prior, max(512, batch // 2)
+        trainer.prior = prior
         return (f"geometry prior rebuilt on resume: {what} ({P.shape[0]} points from {n_src}, "
                 f"{time.perf_counter() - t:.1f} s)")
     cfg.c2f_start_levels = 0  # see the module docstring; recorded in the run's config
@@ -322,7 +321,7 @@ def initialise_geometry(trainer) -> str | None:
     loss = fit_sdf_to_points(trainer.field, prior, cfg.init_geometry_steps, lr=cfg.lr, batch=batch,
                              generator=trainer.gen)
     if cfg.prior_weight > 0:
-        trainer.prior, trainer.prior_batch = prior, max(512, batch // 2)
+        trainer.prior = prior
     return (f"geometry init: {mode} -> {what} ({P.shape[0]} points from {n_src}, "
             f"{cfg.init_geometry_steps} fit steps, loss {loss:.4f}, {time.perf_counter() - t:.1f} s of the budget); "
             "coarse-to-fine off")

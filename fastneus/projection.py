@@ -90,6 +90,14 @@ def pattern_at_points(points: torch.Tensor, K, world_to_proj, pattern: torch.Ten
     return sample_pattern(pattern, px, z > Z_MIN)
 
 
+def unit_sphere_chord(o: torch.Tensor, d: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Entry and exit distances of rays (unit d) through the unit sphere (entry >= 0; exit < entry = miss)."""
+    b = (o * d).sum(-1)
+    c = (o * o).sum(-1) - 1.0
+    disc = (b * b - c).clamp_min(0).sqrt()
+    return (-b - disc).clamp_min(0), -b + disc
+
+
 def pixel_rays(K, cam_to_world, uv: torch.Tensor, S=None) -> tuple[torch.Tensor, torch.Tensor]:
     """Rays through continuous pixel coordinates, in normalised space.
 

@@ -83,12 +83,13 @@ def run_fastneus(scene, views: list[int], device: str, budget: float, extra: lis
     return m, trainer
 
 
-def rec_depth(run: Path, scene, frame: int, device: str) -> np.ndarray:
+def rec_depth(run: Path, scene, frame: int, device: str, mesh=None) -> np.ndarray:
+    """The run's mesh (read from ``run`` unless given) ray-cast from ``frame``'s camera."""
     import trimesh
 
     from fastneus.export.depth import mesh_depth
 
-    mesh = trimesh.load(run / "mesh.ply", force="mesh", process=False)
+    mesh = trimesh.load(run / "mesh.ply", force="mesh", process=False) if mesh is None else mesh
     cam = scene.frame_camera(frame)
     return mesh_depth(mesh.vertices, mesh.faces, cam.K, scene.cam_to_world(frame), cam.width, cam.height, device)
 
@@ -116,10 +117,13 @@ def common_pixels(run: Path, scene, depths: dict[int, np.ndarray], device: str) 
     decoder and the mesh all have a surface. The decoder leaves out what it cannot decode (shadows,
     silhouette pixels that mix foreground and background), and those are the pixels where any
     reconstruction is worst; the plain rows score each method on its own coverage."""
+    import trimesh
+
+    mesh = trimesh.load(run / "mesh.ply", force="mesh", process=False)
     err_f, err_b = [], []
     for i, b in depths.items():
         gt = scene.gt_depth(i)
-        rec = rec_depth(run, scene, i, device)
+        rec = rec_depth(run, scene, i, device, mesh)
         ok = (gt > 0) & np.isfinite(b) & np.isfinite(rec)
         err_f.append(np.abs(rec[ok] - gt[ok]) / gt[ok])
         err_b.append(np.abs(b[ok] - gt[ok]) / gt[ok])

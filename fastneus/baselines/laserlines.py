@@ -42,6 +42,7 @@ import torch
 import torch.nn.functional as F
 
 from fastneus.baselines.planesweep import _box, lit_shares, photo_grid
+from fastneus.projection import normalised_world_to_proj, pattern_at_points, pixel_rays, unit_sphere_chord
 
 
 def sparse_line_frame(scene, i: int, max_lit: float = 0.3) -> bool:
@@ -55,7 +56,7 @@ def sparse_line_frame(scene, i: int, max_lit: float = 0.3) -> bool:
 def laser_line_depth(scene, i: int, n_depths: int = 1024, device="cpu", max_width: int = 480,
                      ratio: float = 2.5, min_level: float = 0.02, max_run: float = 0.2,
                      stages: tuple = ((4, 0.01, 0.05), (12, 0.015, 0.08)), outlier: float = 0.05,
-                     max_share: float = 0.4, chunk: int = 4096
+                     max_share: float = 0.4, chunk: int = 2048
                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Camera z-depth of the line-lit pixels of frame ``i`` (see the module docstring).
 
@@ -85,17 +86,16 @@ def laser_line_depth(scene, i: int, n_depths: int = 1024, device="cpu", max_widt
     low = img.min(-1).values
     excess = (img - ratio * low[..., None] - min_level).clamp_min(0)                    # [H,W,3]
     c2w = scene.cam_to_world(i)
-    R = torch.tensor(c2w[:3, :3], dtype=torch.float64, device=dev)
-    C = torch.tensor(c2w[:3, 3], dtype=torch.float64, device=dev)
-    ctr = torch.tensor(np.asarray(scene.bounds.center, dtype=np.float64), device=dev)
-    rad = float(scene.bounds.radius)
+    # rays and candidates in the bounds' normalised space: the chord is through the unit sphere
+    S = np.eye(4)
+    S[:3, :3] *= float(scene.bounds.radius)
+    S[:3, 3] = np.asarray(scene.bounds.center, dtype=np.float64)
+    cam_z = torch.tensor(c2w[:3, 2], dtype=torch.float64, device=dev)  # optical axis (world = normalised)
     projs = []
     for pid, pat in scene.active_projectors(i):
-        pj = scene.projectors[pid]
-        p = torch.tensor(scene.pattern_image(pat).astype(np.float32) / 255.0, device=dev).permute(2, 0, 1)[None]
-        w2p = torch.tensor(np.linalg.inv(scene.proj_to_world(i, pid)), dtype=torch.float64, device=dev)
-        projs.append((p, torch.tensor(pj.K, dtype=torch.float64, device=dev), w2p))
-    used = [c for c in range(3) if any(float(p[0, c].max()) > 0 for p, _, _ in projs)]
+        w2p = normalised_world_to_proj(np.linalg.inv(scene.proj_to_world(i, pid)), S)
+        projs.append((torch.tensor(scene.pattern_image(pat), device=dev), scene.projectors[pid].K, w2p))
+    used = [c for c in range(3) if any(int(p[..., c].max()) > 0 for p, _, _ in projs)]
     yy, xx = torch.meshgrid(torch.arange(H, device=dev, dtype=torch.float32) + 0.5,
                             torch.arange(W, device=dev, dtype=torch.float32) + 0.5, indexing="ij")
     depth = torch.full((H, W), math.nan, dtype=torch.float64, device=dev)
@@ -114,31 +114,19 @@ def laser_line_depth(scene, i: int, n_depths: int = 1024, device="cpu", max_widt
         cv = (_box(e4 * yy, 5, 5) / den)[0, 0]
         v, u = torch.nonzero(lit, as_tuple=True)
         pu, pv = cu[v, u].double(), cv[v, u].double()
-        d_cam = torch.stack([(pu - K[0, 2]) / K[0, 0], (pv - K[1, 2]) / K[1, 1], torch.ones_like(pu)], -1)
-        d = d_cam @ R.T
-        dn = d / d.norm(dim=-1, keepdim=True)
-        # chord through the bounds sphere (unit direction dn)
-        oc = C - ctr
-        b = dn @ oc
-        disc = (b * b - (oc @ oc - rad * rad)).clamp_min(0).sqrt()
-        t0, t1 = (-b - disc).clamp_min(1e-3), -b + disc
+        o, dn = pixel_rays(K, c2w, torch.stack([pu, pv], -1), S)
+        t0, t1 = unit_sphere_chord(o, dn)
+        s = torch.linspace(0, 1, n_depths, device=dev, dtype=torch.float64)
+        chan = [(pat[..., c:c + 1].contiguous(), Kp, w2p) for pat, Kp, w2p in projs]  # one channel, once
         cands = []
         for a in range(0, v.numel(), chunk):
             sl = slice(a, a + chunk)
-            s = torch.linspace(0, 1, n_depths, device=dev, dtype=torch.float64)
             t = t0[sl, None] + s[None] * (t1[sl] - t0[sl])[:, None]                      # [n, D]
-            X = C + t[..., None] * dn[sl, None]                                            # [n, D, 3]
-            q = torch.zeros(t.shape, device=dev)
-            for p, Kp, w2p in projs:
-                Xp = X @ w2p[:3, :3].T + w2p[:3, 3]
-                z = Xp[..., 2]
-                pix = (Xp @ Kp.T)[..., :2] / z.clamp_min(1e-9)[..., None]
-                g = torch.stack([pix[..., 0] / p.shape[-1] * 2 - 1, pix[..., 1] / p.shape[-2] * 2 - 1], -1).float()
-                smp = F.grid_sample(p[:, c:c + 1], g[None], mode="bilinear", padding_mode="zeros",
-                                    align_corners=False)[0, 0]
-                q += smp * (z > 1e-6).float()
-            cands.append(_runs(q, t, (t1[sl] - t0[sl]), max_run))
-        cz = torch.cat(cands) * d_cam[:, 2:3] / d_cam.norm(dim=-1, keepdim=True)          # along-ray -> camera z
+            X = (o[sl, None] + t[..., None] * dn[sl, None]).reshape(-1, 3)                 # [n * D, 3]
+            q = sum(pattern_at_points(X, Kp, w2p, pat)[:, 0] for pat, Kp, w2p in chan)
+            cands.append(_runs(q.reshape(t.shape), t, t1[sl] - t0[sl], max_run))
+        # normalised distance along the ray -> camera z-depth in world units
+        cz = torch.cat(cands) * float(scene.bounds.radius) * (dn @ cam_z)[:, None]
         obs.append((v, u, pu.float(), pv.float(), cz))
     # labelling: unique first, then by accepted neighbours, near ones first
     for radius, tol, margin in stages:

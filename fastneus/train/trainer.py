@@ -16,6 +16,7 @@ from fastneus.config import Config, config_from_dict, save_config
 from fastneus.errors import FastneusError
 from fastneus.field.model import SDFField
 from fastneus.field.renderer import render_rays
+from fastneus.geometry_init import fit_batch
 from fastneus.kernels.occupancy import OccupancyGrid
 from fastneus.train.checkpoint import CKPT_NAME, load_checkpoint, restore, save_checkpoint  # noqa: F401 (re-export)
 from fastneus.train.adam import Adam
@@ -261,7 +262,7 @@ class Trainer:
             loss = loss - ramp * c.bg_weight * (batch["bg"] * torch.log1p(-op)).mean()
         if self.prior is not None and p < c.prior_frac:
             w = c.prior_weight * (1.0 - p / c.prior_frac)
-            loss = loss + w * self.prior.loss(self.field, self.prior_batch, self.gen, eikonal=False)
+            loss = loss + w * self.prior.loss(self.field, fit_batch(c) // 2, self.gen, eikonal=False)
         if c.curvature_weight > 0 and out["curv"] is not None:
             loss = loss + c.curvature_weight * out["curv"].abs().mean()
         self.opt.zero_grad(set_to_none=True)
