@@ -63,6 +63,20 @@ def photo_grid(scene, i: int, max_width: int) -> tuple[np.ndarray, np.ndarray | 
     return photo, msk, K
 
 
+def _window_nanmedian(x: torch.Tensor, window: int) -> torch.Tensor:
+    """Median of the finite values of x [H, W] in each ``window`` square (NaN where none)."""
+    r = window // 2
+    pad = F.pad(x[None, None], (r, r, r, r), value=math.nan)
+    return F.unfold(pad, window)[0].nanmedian(0).values.reshape(x.shape)
+
+
+def _window_range(x: torch.Tensor, r: int) -> torch.Tensor:
+    """max - min of the finite values of x [H, W] in each (2 r + 1)^2 square."""
+    hi = F.max_pool2d(torch.nan_to_num(x, nan=-math.inf)[None, None], 2 * r + 1, 1, r)[0, 0]
+    lo = -F.max_pool2d(torch.nan_to_num(-x, nan=-math.inf)[None, None], 2 * r + 1, 1, r)[0, 0]
+    return hi - lo
+
+
 def _box(x: torch.Tensor, kh: int, kw: int) -> torch.Tensor:
     """Mean over a kh x kw window (edges: over the part inside), x [B, C, H, W]."""
     return F.avg_pool2d(x, (kh, kw), stride=1, padding=(kh // 2, kw // 2), count_include_pad=False)
@@ -71,7 +85,8 @@ def _box(x: torch.Tensor, kh: int, kw: int) -> torch.Tensor:
 @torch.no_grad()
 def planesweep_depth(scene, i: int, n_depths: int = 256, window: tuple[int, int] | None = None,
                      min_score: float = 0.6, min_margin: float = 0.05, device="cpu",
-                     chunk: int = 16, max_width: int = 480) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                     chunk: int = 16, max_width: int = 480, refine: int = 13, edge_radius: int | None = None,
+                     edge_jump: float = 0.02) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Camera z-depth of frame ``i`` by a plane sweep against its projected patterns.
 
     Args:
@@ -84,6 +99,11 @@ def planesweep_depth(scene, i: int, n_depths: int = 256, window: tuple[int, int]
         device: torch device for the sweep. chunk: depths per batch.
         max_width: wider photos are swept at this width (area-downsampled; the score volume is
             n_depths x H x W floats, and an initialisation needs no more).
+        refine: hypotheses of the second, per-pixel sweep across +-1.5 steps around each winner
+            (0: none).
+        edge_radius, edge_jump: pixels within ``edge_radius`` of a relative depth jump over
+            ``edge_jump``, and the object's outermost pixel ring, are dropped (0: keep them;
+            default: 1 pixel per 200 of width, like the window).
     Returns:
         depth [h, w] float32 (world units, NaN where rejected), score [h, w] float32, and K [3, 3]
         of that (possibly downsampled) pixel grid.
@@ -95,9 +115,11 @@ def planesweep_depth(scene, i: int, n_depths: int = 256, window: tuple[int, int]
     img = torch.tensor(photo, dtype=torch.float32, device=dev).permute(2, 0, 1)[None] / 255.0  # [1,3,H,W]
     H, W = img.shape[-2:]
     c2w = scene.cam_to_world(i)
+    s = max(1.0, W / 200.0)
     if window is None:
-        s = max(1.0, W / 200.0)
         window = (2 * round(3 * s) + 1, 2 * round(3 * s) + 1)
+    if edge_radius is None:
+        edge_radius = round(s)
     kh, kw = window
     # the depth range: the bounds sphere along the optical axis
     ctr = np.linalg.inv(c2w) @ np.r_[np.asarray(scene.bounds.center, dtype=np.float64), 1.0]
@@ -126,8 +148,9 @@ def planesweep_depth(scene, i: int, n_depths: int = 256, window: tuple[int, int]
                       torch.tensor(w2p, dtype=torch.float64, device=dev), p.shape[1], p.shape[0]))
 
     def predict(zc: torch.Tensor) -> torch.Tensor:
-        """Projected light at depths zc [D]: [D, 3, H, W]."""
-        X = C + zc[:, None, None, None] * d_w[None]                                          # [D,H,W,3]
+        """Projected light for depth hypotheses zc [D] (planes) or [D, H, W] (per pixel): [D, 3, H, W]."""
+        zc = zc[:, None, None] if zc.dim() == 1 else zc
+        X = C + zc[..., None] * d_w[None]                                                    # [D,H,W,3]
         q = torch.zeros(zc.shape[0], 3, H, W, device=dev)
         for pat, Kp, w2p, pw, ph in projs:
             Xp = X @ w2p[:3, :3].T + w2p[:3, 3]
@@ -149,31 +172,59 @@ def planesweep_depth(scene, i: int, n_depths: int = 256, window: tuple[int, int]
     # photo statistics per channel (constant over depths)
     mI = wbox(img)
     vI = (wbox(img * img) - mI * mI).clamp_min(0)
-    scores = torch.empty((n_depths, H, W), device=dev)  # [D, H, W] mean ZNCC per depth
-    for a in range(0, n_depths, chunk):
-        q = predict(zs[a:a + chunk])                                                         # [D,3,H,W]
-        mQ = wbox(q)
-        vQ = (wbox(q * q) - mQ * mQ).clamp_min(0)
-        cov = wbox(q * img) - mQ * mI
-        ok = (vQ > 1e-4) & (vI > 1e-5)
-        zn = torch.where(ok, cov / (vQ * vI).clamp_min(1e-12).sqrt(), torch.zeros_like(cov))
-        wsum = ok.float().sum(1)
-        sc = torch.where(wsum >= 2, zn.sum(1) / wsum.clamp_min(1), torch.full_like(wsum, -1.0))  # [D,H,W]
-        scores[a:a + sc.shape[0]] = sc
-    best, best_k = scores.max(0)
+
+    def sweep(hyp: torch.Tensor) -> torch.Tensor:
+        """Mean ZNCC over the informative channels for hypotheses hyp [D] or [D, H, W]: [D, H, W]."""
+        out = torch.empty((hyp.shape[0], H, W), device=dev)
+        for a in range(0, hyp.shape[0], chunk):
+            q = predict(hyp[a:a + chunk])                                                    # [D,3,H,W]
+            mQ = wbox(q)
+            vQ = (wbox(q * q) - mQ * mQ).clamp_min(0)
+            cov = wbox(q * img) - mQ * mI
+            ok = (vQ > 1e-4) & (vI > 1e-5)
+            zn = torch.where(ok, cov / (vQ * vI).clamp_min(1e-12).sqrt(), torch.zeros_like(cov))
+            wsum = ok.float().sum(1)
+            out[a:a + q.shape[0]] = torch.where(wsum >= 2, zn.sum(1) / wsum.clamp_min(1), torch.full_like(wsum, -1.0))
+        return out
+
+    def peak(scores: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Best score [H, W], its index, and the index refined by a parabola through its neighbours."""
+        best, k = scores.max(0)
+        n = scores.shape[0]
+        sm = scores.gather(0, (k - 1).clamp(0, n - 1)[None])[0]
+        sp = scores.gather(0, (k + 1).clamp(0, n - 1)[None])[0]
+        den = sm - 2 * best + sp
+        off = torch.where(den < -1e-9, 0.5 * (sm - sp) / den, torch.zeros_like(den)).clamp(-0.5, 0.5)
+        return best, k, k.double() + off.double()
+
+    scores = sweep(zs)                                                                       # [D, H, W]
+    best, best_k, kf = peak(scores)
     # uniqueness: the best score farther than 3 steps from the winner
     idx = torch.arange(n_depths, device=dev)[:, None, None]
     far = (idx - best_k[None]).abs() > 3
     second = torch.where(far, scores, torch.full_like(scores, -2.0)).max(0).values
-    # sub-step refinement: a parabola through the winner and its neighbours
-    km = (best_k - 1).clamp(0, n_depths - 1)
-    kp = (best_k + 1).clamp(0, n_depths - 1)
-    s0, sm, sp = best, scores.gather(0, km[None])[0], scores.gather(0, kp[None])[0]
-    den = sm - 2 * s0 + sp
-    off = torch.where(den < -1e-9, 0.5 * (sm - sp) / den, torch.zeros_like(den)).clamp(-0.5, 0.5)
+    del scores, far
     step = (z1 - z0) / max(n_depths - 1, 1)
-    z = (z0 + (best_k.double() + off.double()) * step).float()
+    z = z0 + kf * step                                                                       # [H, W] float64
     keep = (best >= min_score) & (best - second >= min_margin) & (best_k > 0) & (best_k < n_depths - 1) \
         & fg & (nM[0, 0] >= 0.3)
-    depth = torch.where(keep, z, torch.full_like(z, math.nan))
+    if refine > 0:
+        # A finer sweep around each pixel's winner, a quarter step apart. Its hypotheses are
+        # offsets from the coarse surface (median-smoothed, so one pixel's noise does not bend
+        # its neighbours' windows), so a slanted or curved surface is scored against itself,
+        # not against one fronto-parallel plane across the window.
+        base = _window_nanmedian(torch.where(fg, z, torch.full_like(z, math.nan)), 2 * ((kh // 2 + 1) // 2) + 1)
+        z = torch.where(torch.isfinite(base), base, z)
+        offs = torch.linspace(-1.5, 1.5, refine, dtype=torch.float64, device=dev) * step
+        best_f, _, kf2 = peak(sweep(z[None] + offs[:, None, None]))
+        z = z + (-1.5 + kf2 * 3.0 / (refine - 1)) * step
+        keep &= best_f >= min_score
+    if edge_radius > 0:
+        # Windows straddling a depth edge take the nearer side's depth a pixel or two past the
+        # edge ("foreground fattening"), and a silhouette pixel mixes the object with the
+        # background: centimetres off. Skip the outer ring of the object and every pixel whose
+        # (2 r + 1)^2 neighbourhood of swept depths jumps by more than edge_jump.
+        keep &= -F.max_pool2d(-M, 3, stride=1, padding=1)[0, 0] > 0.5
+        keep &= _window_range(torch.where(fg, z, torch.full_like(z, math.nan)), edge_radius) <= edge_jump * z
+    depth = torch.where(keep, z.float(), torch.full_like(best, math.nan))
     return depth.cpu().numpy().astype(np.float32), best.cpu().numpy().astype(np.float32), K
