@@ -110,6 +110,8 @@ def planesweep_depth(scene, i: int, n_depths: int = 256, window: tuple[int, int]
     """
     import cv2
 
+    if refine != 0 and refine < 3:
+        raise ValueError(f"refine must be 0 (off) or at least 3 hypotheses, got {refine}")
     dev = torch.device(device)
     photo, msk, K = photo_grid(scene, i, max_width)
     img = torch.tensor(photo, dtype=torch.float32, device=dev).permute(2, 0, 1)[None] / 255.0  # [1,3,H,W]
