@@ -210,12 +210,13 @@ def planesweep_depth(scene, i: int, n_depths: int = 256, window: tuple[int, int]
     z = z0 + kf * step                                                                       # [H, W] float64
     keep = (best >= min_score) & (best - second >= min_margin) & (best_k > 0) & (best_k < n_depths - 1) \
         & fg & (nM[0, 0] >= 0.3)
+    on_object = lambda x: torch.where(fg, x, torch.full_like(x, math.nan))  # noqa: E731
     if refine > 0:
         # A finer sweep around each pixel's winner, a quarter step apart. Its hypotheses are
         # offsets from the coarse surface (median-smoothed, so one pixel's noise does not bend
         # its neighbours' windows), so a slanted or curved surface is scored against itself,
         # not against one fronto-parallel plane across the window.
-        base = _window_nanmedian(torch.where(fg, z, torch.full_like(z, math.nan)), 2 * ((kh // 2 + 1) // 2) + 1)
+        base = _window_nanmedian(on_object(z), 2 * ((kh // 2 + 1) // 2) + 1)
         z = torch.where(torch.isfinite(base), base, z)
         offs = torch.linspace(-1.5, 1.5, refine, dtype=torch.float64, device=dev) * step
         best_f, _, kf2 = peak(sweep(z[None] + offs[:, None, None]))
@@ -227,6 +228,6 @@ def planesweep_depth(scene, i: int, n_depths: int = 256, window: tuple[int, int]
         # background: centimetres off. Skip the outer ring of the object and every pixel whose
         # (2 r + 1)^2 neighbourhood of swept depths jumps by more than edge_jump.
         keep &= -F.max_pool2d(-M, 3, stride=1, padding=1)[0, 0] > 0.5
-        keep &= _window_range(torch.where(fg, z, torch.full_like(z, math.nan)), edge_radius) <= edge_jump * z
+        keep &= _window_range(on_object(z), edge_radius) <= edge_jump * z
     depth = torch.where(keep, z.float(), torch.full_like(best, math.nan))
     return depth.cpu().numpy().astype(np.float32), best.cpu().numpy().astype(np.float32), K
