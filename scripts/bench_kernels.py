@@ -3,7 +3,7 @@
     python scripts/bench_kernels.py --device cpu|cuda [--out DIR] [--no-md]
 
 Sizes: GPU 2^18 samples, 16 levels, 2^19 table; CPU 2^15 samples, 2^17 table.
-Prints a table, writes JSON to --out and a section of docs/BENCHMARKS.md.
+Prints a table, writes JSON to --out and a section of docs/benchmarks/kernels.md.
 """
 from __future__ import annotations
 
@@ -126,7 +126,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
     ap.add_argument("--out", default=str(ROOT / "docs" / "benchmarks"))
-    ap.add_argument("--no-md", action="store_true", help="do not touch docs/BENCHMARKS.md")
+    ap.add_argument("--no-md", action="store_true", help="do not touch docs/benchmarks/kernels.md")
     ap.add_argument("--quick", action="store_true", help="tiny sizes (smoke test)")
     args = ap.parse_args()
     torch.set_grad_enabled(True)
@@ -148,7 +148,7 @@ def main() -> None:
         text = (f"### Kernels on {kind.upper()}\n\nMachine: {machine(args.device)}; commit {git_rev()}.\n"
                 f"Command: `python scripts/bench_kernels.py --device {args.device}`. Medians after warm-up, "
                 f"milliseconds.\n\n{table}")
-        update_section(ROOT / "docs" / "BENCHMARKS.md", f"kernels-{kind}", text)
+        update_section(ROOT / "docs" / "benchmarks" / "kernels.md", f"kernels-{kind}", text)
 
 
 if __name__ == "__main__":

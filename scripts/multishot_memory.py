@@ -17,7 +17,7 @@ Memory: ``torch.cuda.max_memory_allocated`` / ``max_memory_reserved`` over build
 and training (CUDA); the process's peak RSS (CPU; includes ~0.5 GB of Python/torch/Warp). The
 ratio column is peak / peak of the N = 1 run (the single-pattern run). Results: ``OUT/multishot-
 memory-<device>.json`` and ``.md``, and the section ``multishot-memory-<device>`` of
-docs/BENCHMARKS.md (unless ``--no-md``).
+docs/benchmarks/multishot-memory.md (unless ``--no-md``).
 """
 from __future__ import annotations
 
@@ -147,7 +147,7 @@ def main() -> None:
             + " ratio = peak / peak of the 1-pattern run.\n\n")
     (out / f"multishot-memory-{kind}.md").write_text(head + table)
     if not args.no_md:
-        update_section(ROOT / "docs" / "BENCHMARKS.md", f"multishot-memory-{kind}", head + table)
+        update_section(ROOT / "docs" / "benchmarks" / "multishot-memory.md", f"multishot-memory-{kind}", head + table)
 
 
 if __name__ == "__main__":

@@ -26,7 +26,7 @@ pattern-lit pixels. Rows stream to ``OUT/pattern-study-<device>.jsonl`` (a re-ru
 already there, so the study can be run in parts with the same ``--out``); the table goes to
 ``.md``/``.json`` and a figure (per pattern: photo, depth, depth-error map; 0-1 % of depth on a
 turbo ramp, magenta = missed surface) to ``OUT/pattern-study-<device>.png``; with docs updating
-on, the section ``pattern-study-<device>`` of docs/BENCHMARKS.md and docs/benchmarks/.
+on, the section ``pattern-study-<device>`` of docs/benchmarks/pattern-study.md (figure beside it).
 """
 from __future__ import annotations
 
@@ -145,7 +145,7 @@ def main() -> None:
     ap.add_argument("--size", type=int, default=400)
     ap.add_argument("--shape", default="toy")
     ap.add_argument("--out", default="/tmp/fastneus-pattern-study")
-    ap.add_argument("--no-md", action="store_true", help="do not update docs/BENCHMARKS.md and docs/benchmarks/")
+    ap.add_argument("--no-md", action="store_true", help="do not update docs/benchmarks/pattern-study.md and its figure")
     ap.add_argument("overrides", nargs="*", help="key=value for every fastneus run (tuning only)")
     args = ap.parse_args()
 
@@ -264,8 +264,8 @@ def main() -> None:
             dst = ROOT / "docs" / "benchmarks" / fig_path.name
             shutil.copyfile(fig_path, dst)
             text += (f"\n![pattern study, one viewpoint: photo, GT depth, fastneus depth and error, decoder depth "
-                     f"and error](benchmarks/{fig_path.name})\n")
-        update_section(ROOT / "docs" / "BENCHMARKS.md", f"pattern-study-{kind}", text)
+                     f"and error]({fig_path.name})\n")
+        update_section(ROOT / "docs" / "benchmarks" / "pattern-study.md", f"pattern-study-{kind}", text)
 
 
 if __name__ == "__main__":

@@ -23,7 +23,7 @@ F-score, |i_r - 0.4| and |i_b - 0.1| (learned from the file's values, the defaul
 PSNR (pattern-free render vs the GT pattern-free image). Results stream to
 ``OUT/quality-<tag>.jsonl`` (one line per cell; a re-run skips cells already there), then a
 table goes to ``OUT/quality-<tag>.md`` and to the section ``quality-matrix-<device>`` of
-docs/BENCHMARKS.md.
+docs/benchmarks/quality-matrix.md.
 """
 from __future__ import annotations
 
@@ -134,7 +134,7 @@ def main() -> None:
     ap.add_argument("--threads", type=int, default=None,
                     help="CPU threads for the kernels and torch (the config key threads; default: every CPU)")
     ap.add_argument("--report-from", default=None, help="only tabulate these JSONL files (comma-separated)")
-    ap.add_argument("--no-md", action="store_true", help="do not update docs/BENCHMARKS.md")
+    ap.add_argument("--no-md", action="store_true", help="do not update docs/benchmarks/quality-matrix.md")
     ap.add_argument("--variants", default=None, help='named override sets: "name:k=v k=v;name2:k=v"')
     ap.add_argument("overrides", nargs="*", help="key=value applied to every cell (tuning only)")
     args = ap.parse_args()
@@ -196,7 +196,7 @@ def main() -> None:
                 f"{args.size}x{args.size}, 4 cross-laser projectors, object ~2 m across; default preset, "
                 f"`time_budget` per column; 'off' = masks hidden from the run). One run per cell.\n\n")
         chk = "".join(f"- {k}: {v}\n" for k, v in checks.items())
-        update_section(ROOT / "docs" / "BENCHMARKS.md", f"quality-matrix-{tag}", head + text + "\n" + chk)
+        update_section(ROOT / "docs" / "benchmarks" / "quality-matrix.md", f"quality-matrix-{tag}", head + text + "\n" + chk)
 
 
 if __name__ == "__main__":

@@ -38,7 +38,7 @@ Chamfer (mm), PSNR and what was recovered:
   within 1.5x of the in-air run.
 
 Results: a table on stdout, ``OUT/rig-recovery.json`` (every row, all metrics) and
-``OUT/rig-recovery.md`` (the tables, for docs/BENCHMARKS.md). Run folders (mesh, report)
+``OUT/rig-recovery.md`` (the tables, for docs/benchmarks/rig-recovery.md). Run folders (mesh, report)
 stay under ``OUT/runs``. On CPU use tiny sizes (``--size 32 --views 4 --budget 4``): that
 proves the protocol runs, not the targets.
 """

@@ -19,7 +19,7 @@ reported), so ``background=0`` (our default) matches them. The official run also
 masks (BCE weight 1.0); fastneus uses them by default (``masks=auto``, ``mask_weight`` 0.1).
 Writes ``results.json``, ``results.md``, ``grid.png`` + ``index.html``
 (held-out photos next to renders) into ``--out`` and updates the section
-``activeneus-sample-<device>`` of docs/BENCHMARKS.md.
+``activeneus-sample-<device>`` of docs/benchmarks/activeneus-sample.md.
 """
 from __future__ import annotations
 
@@ -127,7 +127,7 @@ def main(argv=None) -> int:
     ap.add_argument("--downscale", type=int, default=1, help="shrink the images by this factor (fast CPU runs)")
     ap.add_argument("--views-eval", type=int, default=None, help="evaluate only N of the 30 held-out views")
     ap.add_argument("--grid-views", type=int, default=4, help="held-out views shown in grid.png")
-    ap.add_argument("--no-bench-md", action="store_true", help="do not update docs/BENCHMARKS.md")
+    ap.add_argument("--no-bench-md", action="store_true", help="do not update docs/benchmarks/activeneus-sample.md")
     ap.add_argument("overrides", nargs="*", help="config key=value")
     args = ap.parse_args(argv)
 
@@ -216,7 +216,7 @@ def main(argv=None) -> int:
                 "</body></html>")
         atomic_write_text(out / "index.html", html)
     if not args.no_bench_md:
-        update_section(ROOT / "docs" / "BENCHMARKS.md", f"activeneus-sample-{device.split(':')[0]}", text)
+        update_section(ROOT / "docs" / "benchmarks" / "activeneus-sample.md", f"activeneus-sample-{device.split(':')[0]}", text)
     console.print(f"wrote {out / 'results.json'}, {out / 'results.md'}, {out / 'grid.png'}")
     return 0
 

@@ -36,7 +36,7 @@ median ms per phase over --breakdown-steps steps; the real trainer is not instru
 
 Outputs in --out: speed-compare-<device>.json, .md, chamfer-vs-time-<device>.png; the
 Markdown is printed and (unless --no-md) written to the "speed-compare-<device>" section of
-docs/BENCHMARKS.md.
+docs/benchmarks/speed-compare.md.
 
 --wallclock: instead of the comparison, the product end to end. For each budget (and
 --repeat), a fresh process runs `fastneus train SCENE --device D time_budget=B` (the CLI's
@@ -52,7 +52,7 @@ repeat of each budget an empty Warp kernel cache (measures a first-ever run's co
         [--mesh-res 512] [--cold-kernels] [--set key=value ...] [--out DIR] [--no-md]
 
 Outputs wallclock-<device>.json and .md (and the "wallclock-<device>" section of
-docs/BENCHMARKS.md unless --no-md).
+docs/benchmarks/wallclock.md unless --no-md).
 """
 from __future__ import annotations
 
@@ -459,7 +459,7 @@ def wallclock(args) -> None:
     (out / f"wallclock-{kind}.md").write_text(text)
     print(f"wrote {out / f'wallclock-{kind}.json'} and .md")
     if not args.no_md:
-        update_section(ROOT / "docs" / "BENCHMARKS.md", f"wallclock-{kind}", text)
+        update_section(ROOT / "docs" / "benchmarks" / "wallclock.md", f"wallclock-{kind}", text)
 
 
 # ----------------------------------------------------------------------------- report
@@ -578,7 +578,7 @@ def main() -> None:
     ap.add_argument("--methods", default="warp,torch,baseline")
     ap.add_argument("--target-chamfer", type=float, default=None, help="mm (default: the baseline's at the largest budget)")
     ap.add_argument("--out", default="/tmp/fastneus-speed-compare")
-    ap.add_argument("--no-md", action="store_true", help="do not write docs/BENCHMARKS.md")
+    ap.add_argument("--no-md", action="store_true", help="do not write docs/benchmarks/speed-compare.md or wallclock.md")
     ap.add_argument("--extra-points", type=int, default=4, help="halvings of the largest budget also evaluated")
     ap.add_argument("--mesh-res", type=int, default=None, help="marching-cubes grid (default 256 GPU / 64 CPU)")
     ap.add_argument("--points", type=int, default=50_000, help="surface points per side for Chamfer")
@@ -649,7 +649,7 @@ def main() -> None:
 
 
 def report(results: list[dict], args, cmd: str, mach: str, rev: str, wall_s: float | None) -> None:
-    """Table, curves, breakdown -> stdout, JSON, Markdown (+ BENCHMARKS.md section) and the plot."""
+    """Table, curves, breakdown -> stdout, JSON, Markdown (+ docs/benchmarks/speed-compare.md section) and the plot."""
     cuda = args.device.startswith("cuda")
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -692,7 +692,7 @@ def report(results: list[dict], args, cmd: str, mach: str, rev: str, wall_s: flo
     plot(results, target, out / f"chamfer-vs-time-{kind}.png", f"{scene_name} ({kind})")
     print(f"wrote {out / f'speed-compare-{kind}.json'}, .md and chamfer-vs-time-{kind}.png")
     if not args.no_md:
-        update_section(ROOT / "docs" / "BENCHMARKS.md", f"speed-compare-{kind}", text)
+        update_section(ROOT / "docs" / "benchmarks" / "speed-compare.md", f"speed-compare-{kind}", text)
 
 
 if __name__ == "__main__":
