@@ -9,6 +9,7 @@ from __future__ import annotations
 import contextlib
 import json
 import os
+import re
 import shutil
 import tempfile
 from pathlib import Path
@@ -112,5 +113,130 @@ def staged_dir(out: str | os.PathLike, replace: tuple[str, ...] = (), field: str
                 os.replace(stage / name, out / name)
         finally:
             shutil.rmtree(trash, ignore_errors=True)
+    finally:
+        shutil.rmtree(stage, ignore_errors=True)
+
+
+# --------------------------------------------------------------------------- outputs that hold user files
+MANIFEST = ".fastneus-manifest.json"
+# a path fastneus writes: "/"-separated plain names (no "..", no leading dot, no odd characters)
+_SAFE_PART = re.compile(r"[A-Za-z0-9_][A-Za-z0-9._-]{0,127}")
+
+
+def _safe_rel(rel: Any) -> bool:
+    parts = rel.split("/") if isinstance(rel, str) else []
+    return bool(parts) and all(_SAFE_PART.fullmatch(p) and ".." not in p for p in parts)
+
+
+def safe_dest(root: str | os.PathLike, rel: str, file=None, field: str | None = None) -> Path:
+    """``root/rel`` once it is sure to name a file inside ``root``.
+
+    ``rel`` must be "/"-separated plain names (letters, digits, ``._-``; no ``..``, no leading
+    dot), no folder on the way may be a symbolic link or a file, and the destination itself
+    must not be a symbolic link: a name taken from input data can never write elsewhere.
+
+    Raises:
+        FastneusError: naming ``file`` (default ``root``) and ``field``.
+    """
+    base = Path(root).resolve()
+    if not _safe_rel(rel):
+        raise FastneusError(f"refusing to write {rel!r}: not a plain file name inside the output folder",
+                            file=file if file is not None else root, field=field)
+    parts = rel.split("/")
+    cur = base
+    for part in parts:
+        cur = cur / part
+        if cur.is_symlink() or (cur != base / rel and cur.exists() and not cur.is_dir()):
+            raise FastneusError(f"refusing to write {rel!r}: {cur} is a symbolic link or a file; fastneus writes "
+                                "only into real folders inside the output folder", file=file if file is not None
+                                else root, field=field)
+    dst = base.joinpath(*parts)
+    if os.path.commonpath([str(dst.parent.resolve()), str(base)]) != str(base):
+        raise FastneusError(f"refusing to write {rel!r}: it lies outside the output folder",
+                            file=file if file is not None else root, field=field)
+    return dst
+
+
+def read_manifest(out: str | os.PathLike) -> set[str]:
+    """The files fastneus wrote in ``out`` (:data:`MANIFEST`); unreadable or odd entries count as not ours."""
+    try:
+        d = json.loads((Path(out) / MANIFEST).read_text())
+    except (OSError, ValueError, RecursionError):
+        return set()
+    files = d.get("files") if isinstance(d, dict) else None
+    return {f for f in files if _safe_rel(f)} if isinstance(files, list) else set()
+
+
+def _write_manifest(out: Path, files: set[str]) -> None:
+    atomic_write_json(out / MANIFEST, {"written_by": "fastneus", "note": "files fastneus wrote here; a later "
+                                       "fastneus output replaces or removes these only", "files": sorted(files)})
+
+
+def _remove_ours(out: Path, rel: str) -> None:
+    """Remove file ``out/rel`` (listed in the manifest) and the folders it leaves empty."""
+    try:
+        p = safe_dest(out, rel)
+    except FastneusError:
+        return  # a symlinked folder on the way: never follow it to delete
+    if p.is_symlink() or p.is_file():
+        p.unlink()
+    base = out.resolve()
+    for d in p.parents:
+        if d == base or base not in d.parents:
+            break
+        try:
+            d.rmdir()  # only when empty: a user's file in there keeps its folder
+        except OSError:
+            break
+
+
+@contextlib.contextmanager
+def staged_output(out: str | os.PathLike, field: str = "--out",
+                  adopt: Callable[[Path], set[str]] | None = None) -> Iterator[Path]:
+    """Build an output in a hidden sibling folder, then swap it into ``out`` without losing a file.
+
+    Nothing in ``out`` changes until the body has finished (bad input, an error or Ctrl-C
+    half-way leave it as it was, and the staging folder is removed). Then each staged file
+    is moved in (index files at the top level last); files of an earlier output that
+    fastneus wrote (listed in ``out/.fastneus-manifest.json``) are replaced or removed; a
+    file of the same name that fastneus did not write is never touched: the swap is refused
+    before anything moves, naming that file.
+
+    Args:
+        out: the folder the user named.
+        field: the option named in errors.
+        adopt: for a folder written before manifests existed: called with ``out`` when it has
+            no manifest, returns the relative paths to treat as fastneus's own.
+
+    Yields:
+        The staging folder to write into.
+
+    Raises:
+        FastneusError: a user's file would be replaced, or a destination is not a plain file
+            inside ``out``.
+    """
+    out = check_out_dir(out, field)
+    make_out_dir(out.parent, field)
+    stage = Path(tempfile.mkdtemp(prefix=f".{out.name}.staging-", dir=out.parent))
+    try:
+        yield stage
+        new = {p.relative_to(stage).as_posix() for p in stage.rglob("*") if p.is_file() or p.is_symlink()}
+        make_out_dir(out, field)
+        old = read_manifest(out)
+        if not old and adopt is not None and not (out / MANIFEST).exists():
+            old = {r for r in adopt(out) if _safe_rel(r)}
+        for rel in sorted(new):  # check everything before moving anything
+            dst = safe_dest(out, rel, field=field)
+            if dst.is_dir() or ((dst.exists() or dst.is_symlink()) and rel not in old):
+                raise FastneusError(f"exists and was not written by fastneus, so it is left alone; choose another "
+                                    f"{field}", file=dst, field=field)
+        _write_manifest(out, old | new)  # first: an interrupted swap still knows every file it moved
+        for rel in sorted(new, key=lambda r: ("/" not in r, r)):  # the index (scene.json, npz) arrives last
+            dst = out / rel
+            dst.parent.mkdir(parents=True, exist_ok=True)
+            os.replace(stage / rel, dst)
+        for rel in sorted(old - new):  # stale files of fastneus's earlier output
+            _remove_ours(out, rel)
+        _write_manifest(out, new)
     finally:
         shutil.rmtree(stage, ignore_errors=True)

@@ -92,26 +92,34 @@ def planes_to_pattern(planes: list[LaserPlane], K: np.ndarray, width: int, heigh
 def pattern_approximation(scene, out, width: int, height: int, hfov_deg: float, depth: float):
     """A copy of a laser scene whose laser projectors become pattern projectors (pinhole K of
     ``hfov_deg``, ``width`` x ``height``) showing :func:`planes_to_pattern` images: the
-    approximation a pattern-only tool must use. Saved in ``out`` (images shared by path)."""
-    from fastneus.data.scene import Pattern, Scene
+    approximation a pattern-only tool must use. Saved in ``out`` (images shared by path).
+
+    Pattern files are named ``patterns/<projector id>_planes.png``; the id must be a safe id
+    (:data:`fastneus.data.scene.SAFE_ID`) and each destination is checked to lie inside ``out``.
+    """
+    from fastneus.data.scene import Pattern, Scene, check_id
+    from fastneus.io import safe_dest
     from fastneus.patterns import write_png
     from fastneus.synth import projector_intrinsics
 
     import os
 
     out = Path(out)
+    sj = Path(scene.root) / "scene.json"
+    for pid in scene.projectors:  # before anything is written
+        check_id(pid, sj, "projectors")
     (out / "patterns").mkdir(parents=True, exist_ok=True)
     s = copy.deepcopy(scene)
     K = projector_intrinsics(width, height, hfov_deg)
     for pid, pj in scene.projectors.items():
         if pj.kind != "laser":
             continue
-        qid = f"{pid}_planes"
-        write_png(out / "patterns" / f"{qid}.png", planes_to_pattern(pj.planes, K, width, height, depth))
+        qid = check_id(f"{pid}_planes", sj, "projectors")
+        dst = safe_dest(out, f"patterns/{qid}.png", file=sj, field=f"projectors.{pid}")
+        write_png(dst, planes_to_pattern(pj.planes, K, width, height, depth))
         s.projectors[pid] = Projector(id=pid, K=K, width=width, height=height, proj_to_cam=pj.proj_to_cam)
         # paths in a scene are relative to its root; save() rewrites them relative to `out`
-        s.patterns[qid] = Pattern(id=qid, file=os.path.relpath(out.resolve() / "patterns" / f"{qid}.png",
-                                                               Path(s.root).resolve()))
+        s.patterns[qid] = Pattern(id=qid, file=os.path.relpath(dst, Path(s.root).resolve()))
         for f in s.frames:
             fp = f.projectors.get(pid)
             if fp is not None:
@@ -129,7 +137,7 @@ def read_laser_planes(path, units: str = "mm") -> dict[str, Projector]:
     """
     import yaml
 
-    from fastneus.data.scene import check_pose
+    from fastneus.data.scene import check_id, check_pose
 
     path = Path(path)
     if not path.is_file():
@@ -146,6 +154,7 @@ def read_laser_planes(path, units: str = "mm") -> dict[str, Projector]:
     s = UNITS[u]
     out = {}
     for lid, e in d["lasers"].items():
+        lid = check_id(str(lid), path, "lasers")  # becomes a projector id (pattern_approximation names files by it)
         fld = f"lasers.{lid}"
         if not isinstance(e, dict):
             raise FastneusError("expected a mapping", file=path, field=fld)

@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import json
 import math
-import shutil
 import time
 from pathlib import Path
 
@@ -193,32 +192,33 @@ class Albedo:
 
 
 # --------------------------------------------------------------------------- output folder
-def _prepare_out(out: Path) -> None:
-    """Create ``out``; clear a previous synth output there, refuse to mix with other files."""
+def _is_previous_synth(out: Path) -> bool:
+    sj = out / "scene.json"
+    try:
+        return sj.is_file() and json.loads(sj.read_text()).get("meta", {}).get("generator") == GENERATOR
+    except (OSError, ValueError, AttributeError, RecursionError):
+        return False
+
+
+def _check_out(out: Path) -> None:
+    """Refuse an ``out`` holding anything but a previous synth output (before any rendering)."""
     from .io import check_out_dir
 
     check_out_dir(out)
-    if out.exists() and any(out.iterdir()):
-        sj = out / "scene.json"
-        ours = False
-        if sj.is_file():
-            try:
-                ours = json.loads(sj.read_text()).get("meta", {}).get("generator") == GENERATOR
-            except (OSError, ValueError, AttributeError):
-                ours = False
-        if not ours:
-            raise FastneusError("folder exists and is not empty (and is not a previous synth output); "
-                                "choose a new --out", file=out, field="--out")
-        sj.unlink()
-        for d in _OUR_DIRS:
-            if (out / d).is_dir():
-                shutil.rmtree(out / d)
-        for f in ("gt_mesh.ply", "contact_sheet.png"):
-            if (out / f).exists():
-                (out / f).unlink()
-    out.mkdir(parents=True, exist_ok=True)
+    if out.is_dir() and any(out.iterdir()) and not _is_previous_synth(out):
+        raise FastneusError("folder exists and is not empty (and is not a previous synth output); "
+                            "choose a new --out", file=out, field="--out")
+
+
+def _adopt_previous(out: Path) -> set[str]:
+    """The files of a synth output written before manifests existed (what synth used to replace)."""
+    if not _is_previous_synth(out):
+        return set()
+    files = {f for f in ("scene.json", "gt_mesh.ply", "contact_sheet.png") if (out / f).is_file()}
     for d in _OUR_DIRS:
-        (out / d).mkdir(exist_ok=True)
+        if (out / d).is_dir() and not (out / d).is_symlink():
+            files |= {p.relative_to(out).as_posix() for p in (out / d).iterdir() if p.is_file() and not p.is_symlink()}
+    return files
 
 
 def _quantise(c: torch.Tensor) -> torch.Tensor:
@@ -244,7 +244,8 @@ def synthesize(out, shape: str | None = None, mesh=None, views: int = 20, size=(
     """Render a synthetic structured-light scene into ``out`` and return it (loaded back).
 
     Args:
-        out: output folder (created; a previous synth output there is replaced).
+        out: output folder (created; the files of a previous synth output there are replaced, on
+            success only: it is rendered aside and swapped in; other files are kept).
         shape: built-in shape name (``sphere``, ``torus``, ``toy``), or
         mesh: a mesh file path or a ``trimesh.Trimesh`` (exactly one of shape / mesh).
         views: number of viewpoints on the orbit (ignored when ``poses`` is given).
@@ -291,18 +292,30 @@ def synthesize(out, shape: str | None = None, mesh=None, views: int = 20, size=(
     Returns:
         The written :class:`Scene` (loaded back, so it is validated).
     """
+    kwargs = {k: v for k, v in locals().items() if k not in ("threads", "out")}  # first: only the arguments
+    from .io import staged_output
+
+    out = Path(out)
+    _check_out(out)
     prev_threads = torch.get_num_threads()
     if threads is not None and torch.device(device).type == "cpu":
         torch.set_num_threads(int(threads))
     try:
-        return _synthesize(**{k: v for k, v in locals().items() if k not in ("prev_threads", "threads")})
+        # rendered aside and swapped in on success: bad values, errors or Ctrl-C leave the previous scene
+        with staged_output(out, adopt=_adopt_previous) as stage:
+            info = _synthesize(out=stage, **kwargs)
     finally:
         torch.set_num_threads(prev_threads)
+    loaded = Scene.load(out)
+    if progress:
+        _summary(loaded, out, *info)
+    return loaded
 
 
 def _synthesize(out, shape, mesh, views, size, pattern, illum, albedo, noise, seed, device, ambient, i_r, i_b,
                 proj_size, proj_fov_deg, baselines, cam_distance, focal, poses, normalise, pattern_opts,
-                light_dir, contact_sheet, progress, projector_blur, laser_planes, medium) -> Scene:
+                light_dir, contact_sheet, progress, projector_blur, laser_planes, medium) -> tuple:
+    """Render into the fresh folder ``out`` (the staging folder); returns (seconds, stats, faces) for the summary."""
     from .kernels.raycast import raycast_mesh
 
     t_start = time.perf_counter()
@@ -319,6 +332,19 @@ def _synthesize(out, shape, mesh, views, size, pattern, illum, albedo, noise, se
         raise FastneusError("noise sigma must be >= 0", field="--noise")
     if projector_blur < 0:
         raise FastneusError("projector blur sigma must be >= 0", field="--projector-blur")
+    # checked up front (not found by Scene.load after rendering): nan passes every "< 0" test
+    for v, flag, lo in ((ambient, "--ambient", 0.0), (i_r, "i_r", None), (i_b, "i_b", None), (noise, "--noise", 0.0),
+                        (projector_blur, "--projector-blur", 0.0), (cam_distance, "cam_distance", 0.0),
+                        (proj_fov_deg, "proj_fov_deg", 0.0), (focal, "focal", 0.0)):
+        if v is None:
+            continue
+        try:
+            ok = not isinstance(v, bool) and math.isfinite(float(v)) and (lo is None or float(v) >= lo)
+        except (TypeError, ValueError):
+            ok = False
+        if not ok:
+            raise FastneusError(f"expected a finite number{'' if lo is None else f' >= {lo:g}'}, got {v!r}",
+                                field=flag)
     taps = blur_kernel(projector_blur) if projector_blur > 0 else None
     if medium not in ("air", "water"):
         raise FastneusError(f"unknown medium {medium!r}; use air or water", field="--medium")
@@ -411,7 +437,8 @@ def _synthesize(out, shape, mesh, views, size, pattern, illum, albedo, noise, se
     poses = [np.asarray(p, dtype=np.float64) for p in poses]
     n_views, n_shots = len(poses), len(shots)
 
-    _prepare_out(out)
+    for d in _OUR_DIRS:
+        (out / d).mkdir(exist_ok=True)
     for q, im in pat_images.items():
         write_png(out / "patterns" / f"{q}.png", im)
     m.export(out / "gt_mesh.ply")
@@ -553,10 +580,8 @@ def _synthesize(out, shape, mesh, views, size, pattern, illum, albedo, noise, se
     if contact_sheet and sheet_rows:
         write_png(out / "contact_sheet.png", _contact_sheet(sheet_rows))
     scene.save(out)
-    loaded = Scene.load(out)
-    if progress:
-        _summary(loaded, out, time.perf_counter() - t_start, stats, len(F))
-    return loaded
+    Scene.load(out)  # validated here, before it replaces the previous output
+    return time.perf_counter() - t_start, stats, len(F)
 
 
 # --------------------------------------------------------------------------- reporting

@@ -15,6 +15,7 @@ import copy
 import json
 import math
 import os
+import re
 import struct
 import tempfile
 from dataclasses import dataclass, field
@@ -232,6 +233,24 @@ def _dict(value: Any, file, fld: str) -> dict:
     return value
 
 
+# ids of cameras, projectors and patterns name files that writers create (pattern/<id>.png):
+# a safe file name, never a path (no "/", no "..", no leading dot or dash)
+SAFE_ID = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,63}")
+SAFE_ID_RULE = "letters, digits, '.', '_', '-' (1-64 characters, starting with a letter or digit, no '..')"
+
+
+def id_field(prefix: str, key: Any) -> str:
+    """``prefix.key`` for error messages; an unprintable key is quoted so the message stays one line."""
+    return f"{prefix}.{key}" if isinstance(key, str) and key.isprintable() else f"{prefix}.{key!r}"
+
+
+def check_id(value: Any, file, prefix: str) -> str:
+    """Validate an id used as a file name (:data:`SAFE_ID`); the error names ``prefix.<id>``."""
+    if not isinstance(value, str) or not SAFE_ID.fullmatch(value) or ".." in value:
+        raise _err(f"unsafe id {value!r}: ids may use {SAFE_ID_RULE}", file, id_field(prefix, value))
+    return value
+
+
 def _req(d: dict, key: str, file, prefix: str) -> Any:
     if key not in d:
         raise _err("missing", file, f"{prefix}.{key}" if prefix else key)
@@ -388,7 +407,7 @@ class Scene:
 
         cameras: dict[str, Camera] = {}
         for cid, c in _dict(_req(d, "cameras", file, ""), file, "cameras").items():
-            p = f"cameras.{cid}"
+            p = f"cameras.{check_id(cid, file, 'cameras')}"
             c = _dict(c, file, p)
             dist = c.get("dist")
             cameras[cid] = Camera(
@@ -402,7 +421,7 @@ class Scene:
 
         projectors: dict[str, Projector] = {}
         for pid, pr in _dict(d.get("projectors", {}), file, "projectors").items():
-            p = f"projectors.{pid}"
+            p = f"projectors.{check_id(pid, file, 'projectors')}"
             pr = _dict(pr, file, p)
             p2c = pr.get("proj_to_cam")
             kind = pr.get("kind", "pattern")
@@ -427,7 +446,7 @@ class Scene:
         patterns: dict[str, Pattern] = {}
         pattern_sizes: dict[str, tuple[int, int]] = {}
         for qid, q in _dict(d.get("patterns", {}), file, "patterns").items():
-            p = f"patterns.{qid}"
+            p = f"patterns.{check_id(qid, file, 'patterns')}"
             q = _dict(q, file, p)
             patterns[qid] = Pattern(id=qid, file=_str(_req(q, "file", file, p), file, f"{p}.file"))
             if check_files:

@@ -348,8 +348,22 @@ def write_activeneus(scene: Scene, out: str | os.PathLike, downscale: int = 1) -
         The path of the written npz.
 
     Raises:
-        FastneusError: free (non rig-attached) projectors, or a bad ``downscale``.
+        FastneusError: free (non rig-attached) projectors, a bad ``downscale``, or a file in
+            ``out`` that fastneus did not write would be replaced (built aside and swapped in by
+            :func:`fastneus.io.staged_output`: such files are never touched).
     """
+    from fastneus.io import staged_output
+
+    out = Path(out)
+    if out.resolve() == Path(scene.root).resolve():
+        raise FastneusError("output folder is the input folder; choose another --out", file=out)
+    with staged_output(out) as stage:
+        _write_activeneus(scene, stage, downscale)
+    return out / NPZ
+
+
+def _write_activeneus(scene: Scene, out: Path, downscale: int) -> None:
+    """:func:`write_activeneus` into a fresh (staging) folder ``out``; files are named by index."""
     lasers = [p for p, pj in scene.projectors.items() if pj.kind == "laser"]
     if lasers:
         raise FastneusError(f"laser-plane projectors ({', '.join(lasers)}) have no ActiveNeuS form; keep the "
@@ -366,9 +380,6 @@ def write_activeneus(scene: Scene, out: str | os.PathLike, downscale: int = 1) -
         raise FastneusError(f"the ActiveNeuS format needs projectors rigidly attached to the camera; "
                             f"{free} have per-frame poses (proj_to_cam null)", file=Path(scene.root) / "scene.json",
                             field=f"projectors.{free[0]}.proj_to_cam")
-    out = Path(out)
-    if out.resolve() == Path(scene.root).resolve():
-        raise FastneusError("output folder is the input folder; choose another --out", file=out)
     for sub in ("image", "mask", "pattern"):
         (out / sub).mkdir(parents=True, exist_ok=True)
     pids = list(scene.projectors)
@@ -442,18 +453,9 @@ def write_activeneus(scene: Scene, out: str | os.PathLike, downscale: int = 1) -
     arrays["near"] = np.float32(max(float(dist.min()) - r, 1e-3))
     arrays["far"] = np.float32(float(dist.max()) + r)
 
-    # a previous, longer scene in ``out`` would leave frames behind: drop unwritten images
-    written = {f"{i:03d}.png" for i in range(len(scene.frames))}
-    written |= {f"{i:03d}_{k:02d}.png" for i in range(len(scene.frames)) for k in range(len(pids))}
-    for sub in ("image", "mask", "pattern"):
-        for p in _images(out / sub):
-            if p.name not in written or (sub == "mask" and not has_mask):
-                p.unlink()
-
-    npz = out / NPZ
+    # (a previous, longer scene's extra frames are removed at the swap: they are in its manifest)
 
     def w(tmp: str) -> None:
         with open(tmp, "wb") as fh:
             np.savez(fh, **arrays)
-    atomic_write(npz, w)
-    return npz
+    atomic_write(out / NPZ, w)

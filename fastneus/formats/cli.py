@@ -15,45 +15,59 @@ def write_fastneus(scene, out: str | os.PathLike):
     """Copy a scene's files into ``out`` (image/, mask/, pattern/, gt/) and save ``scene.json``.
 
     Files are copied byte for byte (no re-encoding, so nothing is lost); camera
-    distortion stays in the scene. Returns the saved, re-loaded :class:`Scene`.
+    distortion stays in the scene. Copies are named by frame index, or by pattern id (a
+    safe id, :data:`fastneus.data.scene.SAFE_ID`), and every destination is checked to lie
+    inside ``out``. Built aside and swapped in (:func:`fastneus.io.staged_output`): files in
+    ``out`` that fastneus did not write are never replaced or removed.
+    Returns the saved, re-loaded :class:`Scene`.
     """
-    import copy
-
     from fastneus.data import Scene
+    from fastneus.io import staged_output
 
     out = Path(out)
     if out.resolve() == Path(scene.root).resolve():
         raise FastneusError("output folder is the input folder; choose another --out", file=out)
+    with staged_output(out) as stage:
+        _write_fastneus(scene, stage)
+    return Scene.load(out)
+
+
+def _write_fastneus(scene, out: Path) -> None:
+    import copy
+
+    from fastneus.data.scene import check_id
+    from fastneus.io import safe_dest
+
+    sj = Path(scene.root) / "scene.json"
     s = copy.deepcopy(scene)
     copied: dict[str, str] = {}
 
-    def put(rel: str, sub: str, name: str) -> str:
+    def put(rel: str, sub: str, name: str, fld: str) -> str:
         src = scene.path(rel)
         key = str(src.resolve())
         if key not in copied:
             dst = f"{sub}/{name}{src.suffix.lower()}"
             (out / sub).mkdir(parents=True, exist_ok=True)
-            shutil.copyfile(src, out / dst)
+            shutil.copyfile(src, safe_dest(out, dst, file=sj, field=fld))
             copied[key] = dst
         return copied[key]
 
     for i, f in enumerate(s.frames):
-        f.image = put(f.image, "image", f"{i:03d}")
+        f.image = put(f.image, "image", f"{i:03d}", f"frames[{i}].image")
         if f.mask is not None:
-            f.mask = put(f.mask, "mask", f"{i:03d}")
-        f.gt = {k: put(v, "gt", f"{i:03d}_{k}") for k, v in f.gt.items()}
+            f.mask = put(f.mask, "mask", f"{i:03d}", f"frames[{i}].mask")
+        f.gt = {k: put(v, "gt", f"{i:03d}_{k}", f"frames[{i}].gt.{k}") for k, v in f.gt.items()}
     for q in s.patterns.values():
-        q.file = put(q.file, "pattern", q.id)
+        q.file = put(q.file, "pattern", check_id(q.id, sj, "patterns"), f"patterns.{q.id}.file")
     if s.gt_mesh is not None:
-        s.gt_mesh = put(s.gt_mesh, "gt", "mesh")
+        s.gt_mesh = put(s.gt_mesh, "gt", "mesh", "gt.mesh")
     s.root = out
     s.save(out)
-    return Scene.load(out)
 
 
 def _convert(args) -> int:
     from fastneus.formats.detect import load_scene
-    from fastneus.io import check_out_dir, staged_dir
+    from fastneus.io import check_out_dir
 
     check_out_dir(args.out)
     if args.downscale < 1:
@@ -61,18 +75,18 @@ def _convert(args) -> int:
     scene = load_scene(args.scene)
     if Path(args.out).resolve() == Path(scene.root).resolve():
         raise FastneusError("output folder is the input folder; choose another --out", file=args.out, field="--out")
-    # written aside and moved in at the end: an unreadable image found half-way leaves --out as it was
-    with staged_dir(args.out, replace=("image", "mask", "pattern", "gt", "images", "masks", "patterns")) as stage:
-        if args.to == "fastneus":
-            write_fastneus(scene, stage)
-        elif args.to == "nerf":
-            from fastneus.formats.nerf import write_nerf
+    # each writer builds aside and swaps in at the end (fastneus.io.staged_output): an unreadable image
+    # found half-way leaves --out as it was, and files there that fastneus did not write are never touched
+    if args.to == "fastneus":
+        write_fastneus(scene, args.out)
+    elif args.to == "nerf":
+        from fastneus.formats.nerf import write_nerf
 
-            write_nerf(scene, stage)
-        else:
-            from fastneus.formats.activeneus import write_activeneus
+        write_nerf(scene, args.out)
+    else:
+        from fastneus.formats.activeneus import write_activeneus
 
-            write_activeneus(scene, stage, downscale=args.downscale)
+        write_activeneus(scene, args.out, downscale=args.downscale)
     print(f"wrote {args.to} scene with {len(scene.frames)} frames -> {args.out}")
     return 0
 

@@ -282,18 +282,33 @@ def write_nerf(scene: Scene, out: str | os.PathLike, copy_files: bool = True) ->
     Intrinsics are shared at the top level when the scene has one camera, else per frame.
     Files are copied into ``out`` (``images/``, ``masks/``, ``patterns/``) unless
     ``copy_files`` is False, in which case paths point at the scene's own files. Free
-    projectors must keep one pose in every frame (a static ``transform_matrix``).
+    projectors must keep one pose in every frame (a static ``transform_matrix``). Copies are
+    named by frame index or pattern id (a safe id), each destination checked to lie inside
+    ``out``; built aside and swapped in (:func:`fastneus.io.staged_output`), so files in
+    ``out`` that fastneus did not write are never replaced or removed.
     """
+    from fastneus.io import staged_output
+
     out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
-    def put(rel: str, sub: str, name: str) -> str:
+    with staged_output(out) as stage:
+        _write_nerf(scene, stage, out, copy_files)
+    return out / NAME
+
+
+def _write_nerf(scene: Scene, stage: Path, final: Path, copy_files: bool) -> None:
+    from fastneus.data.scene import check_id
+    from fastneus.io import safe_dest
+
+    out = stage
+    sj = Path(scene.root) / "scene.json"
+
+    def put(rel: str, sub: str, name: str, fld: str) -> str:
         src = scene.path(rel)
-        if not copy_files:
-            return Path(os.path.relpath(src.resolve(), out.resolve())).as_posix()
-        (out / sub).mkdir(exist_ok=True)
         dst = f"{sub}/{name}{src.suffix.lower()}"
-        if src.resolve() != (out / dst).resolve():
-            shutil.copyfile(src, out / dst)
+        if not copy_files or src.resolve() == (final / dst).resolve():  # (already in place: kept, not copied)
+            return Path(os.path.relpath(src.resolve(), final.resolve())).as_posix()
+        (out / sub).mkdir(exist_ok=True)
+        shutil.copyfile(src, safe_dest(out, dst, file=sj, field=fld))
         return dst
 
     def intr(K, w, h, dist=None) -> dict:
@@ -312,7 +327,8 @@ def write_nerf(scene: Scene, out: str | os.PathLike, copy_files: bool = True) ->
         d.update(intr(c.K, c.width, c.height, c.dist))
         if c.port is not None:
             d["port"] = port_to_dict(c.port)
-    pat_files = {q.id: put(q.file, "patterns", q.id) for q in scene.patterns.values()}
+    pat_files = {q.id: put(q.file, "patterns", check_id(q.id, sj, "patterns"), f"patterns.{q.id}.file")
+                 for q in scene.patterns.values()}
     proj_block: dict[str, Any] = {}
     for pid, pj in scene.projectors.items():
         if pj.kind == "laser":
@@ -333,7 +349,7 @@ def write_nerf(scene: Scene, out: str | os.PathLike, copy_files: bool = True) ->
         proj_block[pid] = e
     frames = []
     for i, f in enumerate(scene.frames):
-        fe: dict[str, Any] = {"file_path": put(f.image, "images", f"{i:03d}"),
+        fe: dict[str, Any] = {"file_path": put(f.image, "images", f"{i:03d}", f"frames[{i}].image"),
                               "transform_matrix": (f.cam_to_world @ GL_TO_CV).tolist()}
         if not one_cam:
             c = scene.cameras[f.camera]
@@ -341,7 +357,7 @@ def write_nerf(scene: Scene, out: str | os.PathLike, copy_files: bool = True) ->
             if c.port is not None:
                 fe["port"] = port_to_dict(c.port)
         if f.mask is not None:
-            fe["mask_path"] = put(f.mask, "masks", f"{i:03d}")
+            fe["mask_path"] = put(f.mask, "masks", f"{i:03d}", f"frames[{i}].mask")
         fe["projectors"] = {pid: (pat_files[fp.pattern] if fp.pattern is not None else None)
                             for pid, fp in f.projectors.items()}
         frames.append(fe)
@@ -350,6 +366,4 @@ def write_nerf(scene: Scene, out: str | os.PathLike, copy_files: bool = True) ->
     d["bounds"] = {"center": np.asarray(scene.bounds.center).tolist(), "radius": float(scene.bounds.radius)}
     d["units"] = scene.units
     d["frames"] = frames
-    path = out / NAME
-    path.write_text(json.dumps(d, indent=1) + "\n")
-    return path
+    (out / NAME).write_text(json.dumps(d, indent=1) + "\n")
