@@ -310,3 +310,28 @@ def test_synth_rerun_replaces_its_own_files_only(previous_synth, tmp_path):
     assert main(["synth", *TINY_SYNTH, "--out", str(previous_synth)]) == 0
     assert not (previous_synth / "images" / "001.png").exists()
     assert (previous_synth / "notes.txt").read_text() == "the user's notes"
+
+
+def test_import_calib_keeps_the_users_files_in_out(small_scene, tmp_path, capsys):
+    import cv2
+    import numpy as np
+
+    fs = cv2.FileStorage(str(tmp_path / "calib.yml"), cv2.FILE_STORAGE_WRITE)
+    for k, v in {"cam_K": np.array([[30.0, 0, 12], [0, 30, 12], [0, 0, 1]]), "cam_kc": np.zeros((1, 5)),
+                 "proj_K": np.array([[60.0, 0, 32], [0, 60, 24], [0, 0, 1]]), "proj_kc": np.zeros((1, 5)),
+                 "R": np.eye(3), "T": np.array([[100.0], [0], [0]])}.items():
+        fs.write(k, v)
+    fs.release()
+    for d, (w, h) in (("imgs", (24, 24)), ("pats", (64, 48))):
+        (tmp_path / d).mkdir()
+        for i in range(3):
+            cv2.imwrite(str(tmp_path / d / f"{i:03d}.png"), np.full((h, w, 3), 40 * i, np.uint8))
+    out = tmp_path / "out"
+    (out / "image").mkdir(parents=True)
+    (out / "image" / "keep.png").write_bytes(b"the user's photo")
+    args = ["import-calib", str(tmp_path / "calib.yml"), "--images", str(tmp_path / "imgs"), "--patterns",
+            str(tmp_path / "pats"), "--poses", str(small_scene / "scene.json"), "--out", str(out)]
+    assert main(args) == 0, capsys.readouterr().err
+    assert len(Scene.load(out).frames) == 3 and (out / "image" / "keep.png").read_bytes() == b"the user's photo"
+    assert main(args) == 0  # again: its own files are replaced, the user's kept
+    assert (out / "image" / "keep.png").read_bytes() == b"the user's photo"

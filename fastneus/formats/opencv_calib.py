@@ -34,7 +34,7 @@ import numpy as np
 from fastneus.data.scene import (FORMAT, VERSION, Camera, Projector, Scene, check_pose, image_size, planes_to_list,
                                  rigid_inverse)
 from fastneus.errors import FastneusError
-from fastneus.io import staged_dir
+from fastneus.io import staged_output
 
 # layout name -> (cam K, cam dist, proj K, proj dist, R candidates, T)
 LAYOUTS = {
@@ -347,8 +347,9 @@ def make_scene_from_calibration(calib, images: Sequence, patterns: Sequence, pos
             raise FastneusError(why, file=q, field="--patterns")
 
     out = Path(out)
-    # built aside and moved in at the end: a failure leaves an earlier scene in ``out`` intact
-    with staged_dir(out, replace=("image", "pattern")) as stage:
+    # built aside and moved in at the end: a failure leaves an earlier scene in ``out`` intact, and
+    # files there that fastneus did not write are never replaced or removed (fastneus.io.staged_output)
+    with staged_output(out) as stage:
         _write_calibrated_scene(stage, out.resolve().name, cam, proj, images, pats, c2ws, center, radius,
                                 poses_path, lasers)
     return Scene.load(out)
