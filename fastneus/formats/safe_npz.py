@@ -152,18 +152,31 @@ def _unwrap_object_array(obj: Any, vector: bool = False) -> Any:
     raise _Refused("not a single pickled value")
 
 
-def _check_plain(v: Any, depth: int = 0) -> None:
-    """Only numbers, strings and dict/list/tuple of them (what the official format pickles)."""
+MAX_PICKLE_NODES = 10_000  # values the plain-data walk may visit; the official entries hold a handful
+
+
+def _check_plain(v: Any, depth: int = 0, budget: list[int] | None = None) -> None:
+    """Only numbers, strings and dict/list/tuple of them (what the official format pickles).
+
+    The walk is bounded by node count, not only depth: a pickle's memo lets ~1 KB describe a
+    list of 64 references to a list of 64 references ... (64^6 leaves), which a depth limit
+    alone would walk for hours.
+    """
+    if budget is None:
+        budget = [MAX_PICKLE_NODES]
+    budget[0] -= 1
+    if budget[0] < 0:
+        raise _Refused(f"more than {MAX_PICKLE_NODES} values (shared references expand too far)")
     if depth > 8:
         raise _Refused("nested too deeply")
     if isinstance(v, dict):
         for k, x in v.items():
             if not isinstance(k, str):
                 raise _Refused(f"key {k!r} is not a string")
-            _check_plain(x, depth + 1)
+            _check_plain(x, depth + 1, budget)
     elif isinstance(v, (list, tuple)):
         for x in v:
-            _check_plain(x, depth + 1)
+            _check_plain(x, depth + 1, budget)
     elif not isinstance(v, (int, float, str)) or v is None:
         raise _Refused(f"not plain data: got {'an array' if isinstance(v, _Array) else type(v).__name__}")
 
