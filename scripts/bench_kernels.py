@@ -13,7 +13,7 @@ from pathlib import Path
 
 import torch
 
-from benchutil import ROOT, git_rev, machine, md_table, time_fn, update_section, write_json
+from benchutil import ROOT, command_line, md_table, provenance, provenance_line, ratio, time_fn, update_section, write_json
 
 
 def make_render_inputs(S: int, R: int, P: int, device: str, gen: torch.Generator):
@@ -137,16 +137,16 @@ def main() -> None:
         if r["backend"] == "warp" and (r["op"], "torch") in by:
             t = by[(r["op"], "torch")]
             key = "fwd_bwd_ms" if "fwd_bwd_ms" in r else "fwd_ms"
-            r["speedup_vs_twin"] = t[key] / max(r[key], 1e-9)
+            r["speedup_vs_twin"] = ratio(t[key], r[key])
     cols = ["op", "backend", "n", "fwd_ms", "fwd_bwd_ms", "speedup_vs_twin"]
     table = md_table(rows, cols)
     print(table)
     kind = "cuda" if args.device.startswith("cuda") else "cpu"
     out = Path(args.out)
-    write_json(out / f"kernels-{kind}.json", {"machine": machine(args.device), "git": git_rev(), "rows": rows})
+    cmd = command_line("bench_kernels.py")
+    write_json(out / f"kernels-{kind}.json", {**provenance(args.device, cmd), "rows": rows})
     if not args.no_md and not args.quick:
-        text = (f"### Kernels on {kind.upper()}\n\nMachine: {machine(args.device)}; commit {git_rev()}.\n"
-                f"Command: `python scripts/bench_kernels.py --device {args.device}`. Medians after warm-up, "
+        text = (f"### Kernels on {kind.upper()}\n\n{provenance_line(args.device, cmd)} Medians after warm-up, "
                 f"milliseconds.\n\n{table}")
         update_section(ROOT / "docs" / "benchmarks" / "kernels.md", f"kernels-{kind}", text)
 

@@ -12,14 +12,13 @@ directions, in voxels) as a check that they agree. Writes bench-mesh-<device>.js
 from __future__ import annotations
 
 import argparse
-import statistics
 import time
 from pathlib import Path
 
 import numpy as np
 import torch
 
-from benchutil import git_rev, machine, md_table, sync, write_json
+from benchutil import command_line, md_table, median, provenance_line, ratio, sync, write_results
 
 
 def dense(tr, res: int):
@@ -45,7 +44,7 @@ def timed(fn, device: str, repeat: int):
         out = fn()
         sync(device)
         ts.append(time.perf_counter() - t)
-    return statistics.median(ts), out
+    return median(ts), out
 
 
 def main() -> None:
@@ -77,21 +76,18 @@ def main() -> None:
                **{k: m.stats[k] for k in ("coarse_s", "fine_s", "cells_s", "mc_s", "filter_s")}}
         if not args.no_dense:
             t_dense, d = timed(lambda: dense(tr, res), args.device, 1 if args.device == "cpu" else args.repeat)
-            row.update(dense_s=t_dense, dense_faces=len(d.faces), speedup=t_dense / max(t_fast, 1e-9),
+            row.update(dense_s=t_dense, dense_faces=len(d.faces), speedup=ratio(t_dense, t_fast),
                        chamfer_vox=chamfer_voxels(np.asarray(d.vertices), m.vertices, voxel))
         print(row, flush=True)
         rows.append(row)
     cols = ["res", "dense_s", "sparse_s", "speedup", "points_M", "dense_points_M", "cells", "mc", "coarse_s",
             "fine_s", "cells_s", "mc_s", "filter_s", "faces", "dense_faces", "chamfer_vox"]
-    text = (f"### Mesh extraction, {args.device}: {Path(args.run).name}\n\nMachine: {machine(args.device)}; commit "
-            f"{git_rev()}. Command: `python scripts/bench_mesh.py {args.run} --device {args.device} --res {args.res}`."
+    cmd = command_line("bench_mesh.py")
+    text = (f"### Mesh extraction, {args.device}: {Path(args.run).name}\n\n{provenance_line(args.device, cmd)}"
             f" Median of {args.repeat} (dense on CPU: 1). chamfer_vox: mean two-sided vertex distance between the "
             f"dense and the sparse mesh, in voxels.\n\n" + md_table(rows, cols))
     print(text)
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    write_json(out / f"bench-mesh-{args.device.split(':')[0]}.json", {"machine": machine(args.device), "rows": rows})
-    (out / f"bench-mesh-{args.device.split(':')[0]}.md").write_text(text)
+    write_results(Path(args.out), f"bench-mesh-{args.device.split(':')[0]}", {"rows": rows}, text, args.device, cmd)
 
 
 if __name__ == "__main__":

@@ -12,12 +12,11 @@ from __future__ import annotations
 
 import argparse
 import importlib.util
-import statistics
 import time
 
 import torch
 
-from benchutil import sync
+from benchutil import median, ratio, sync
 
 
 def make_inputs(S: int, R: int, F: int, P: int, device: str, gen: torch.Generator, pattern: str = "lines"):
@@ -145,11 +144,11 @@ def main() -> None:
                 tb = runs[m][c]()
                 sync(args.device)
                 ts[m].append(((time.perf_counter() - t) * 1000, tb))
-        med = {m: [statistics.median(x[j] for x in v) for j in (0, 1)] for m, v in ts.items()}
+        med = {m: [median(x[j] for x in v) for j in (0, 1)] for m, v in ts.items()}
         line = "  ".join(f"{m} {med[m][0]:8.2f} / {med[m][1]:8.2f} ms" for m, _ in mods)
         if args.baseline:
-            line += (f"  current/baseline {med['current'][0] / med['baseline'][0]:.2f} / "
-                     f"{med['current'][1] / med['baseline'][1]:.2f}")
+            line += (f"  current/baseline {ratio(med['current'][0], med['baseline'][0]):.2f} / "
+                     f"{ratio(med['current'][1], med['baseline'][1]):.2f}")
         print(f"{c:16s} fwd+bwd / bwd  {line}", flush=True)
 
 

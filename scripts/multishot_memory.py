@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import resource
 import subprocess
 import sys
 import time
@@ -31,36 +30,29 @@ from pathlib import Path
 
 import torch
 
-from benchutil import ROOT, git_rev, machine, md_table, update_section, write_json
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from benchutil import (ROOT, cached_scene, command_line, make_trainer, md_table, peak_mem_mb,  # noqa: E402
+                       provenance_line, update_section, write_results)
 
 
 def make_scene(path: Path, size: int, views: int, device: str):
-    from fastneus.data import Scene
-    from fastneus.synth import synthesize
-
-    if not (path / "scene.json").is_file():
-        synthesize(path, shape="toy", views=views, size=(size, size), pattern="graycode", baselines=(0.6,),
-                   seed=0, device=device, progress=False, contact_sheet=False)
-    return Scene.load(path)
+    return cached_scene(path, shape="toy", views=views, size=(size, size), pattern="graycode", baselines=(0.6,),
+                        seed=0, device=device, contact_sheet=False)
 
 
 def child(args) -> None:
     """Train one cell and print one JSON line."""
-    from fastneus.config import load_config
     from fastneus.data import Scene
-    from fastneus.train.trainer import Trainer
 
     spec = json.loads(args.child)
     dev = args.device
     scene = Scene.load(spec["scene"])
     frames = [i for idx in scene.views().values() for i in idx[:spec["shots"]]]
-    preset = "fewview" if dev.startswith("cuda") else "cpu-quick"
-    cfg = load_config(preset, spec["overrides"] + [f"steps={spec['steps']}"])
-    cfg.frames = frames
     if dev.startswith("cuda"):
         torch.cuda.reset_peak_memory_stats()
     base = torch.cuda.memory_allocated() if dev.startswith("cuda") else 0
-    tr = Trainer(scene, cfg, Path(spec["run"]), dev)
+    tr = make_trainer(scene, dev, spec["overrides"] + [f"steps={spec['steps']}", f"frames={json.dumps(frames)}"],
+                      Path(spec["run"]))
     tr.prime()
     warm = min(10, spec["steps"] // 4)
     for _ in range(warm):
@@ -82,7 +74,7 @@ def child(args) -> None:
         row["peak_alloc_MB"] = (torch.cuda.max_memory_allocated() - base) / 2**20
         row["peak_reserved_MB"] = torch.cuda.max_memory_reserved() / 2**20
     else:
-        row["peak_rss_MB"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+        row["peak_rss_MB"] = peak_mem_mb(dev)
     print("ROW " + json.dumps(row), flush=True)
 
 
@@ -133,19 +125,16 @@ def main() -> None:
     table = md_table(rows, cols)
     print(table)
     kind = "cuda" if args.device.startswith("cuda") else "cpu"
-    write_json(out / f"multishot-memory-{kind}.json", {"machine": machine(args.device), "git": git_rev(),
-                                                      "size": args.size, "views": args.views, "steps": args.steps,
-                                                      "rows": rows})
-    ov = (" " + " ".join(args.overrides)) if args.overrides else ""
-    head = (f"### Memory against the number of patterns ({kind.upper()})\n\nMachine: {machine(args.device)}; "
-            f"commit {git_rev()}. Command: `python scripts/multishot_memory.py --device {args.device} --size "
-            f"{args.size} --views {args.views} --shots {args.shots} --steps {args.steps}{ov}`. Gray code, one "
+    cmd = command_line("multishot_memory.py")
+    head = (f"### Memory against the number of patterns ({kind.upper()})\n\n{provenance_line(args.device, cmd)} "
+            f"Gray code, one "
             f"projector (0.6 m), {args.views} viewpoints of {args.size}x{args.size}, the first N of the 20 shots "
             f"of each viewpoint; default preset, {args.steps} steps, one process per row. "
             + ("Peak = torch.cuda.max_memory_allocated over building the trainer and training."
                if kind == "cuda" else "Peak = the process's max RSS (includes ~0.5 GB of Python, torch and Warp).")
             + " ratio = peak / peak of the 1-pattern run.\n\n")
-    (out / f"multishot-memory-{kind}.md").write_text(head + table)
+    write_results(out, f"multishot-memory-{kind}", {"size": args.size, "views": args.views, "steps": args.steps,
+                                                    "rows": rows}, head + table, args.device, cmd)
     if not args.no_md:
         update_section(ROOT / "docs" / "benchmarks" / "multishot-memory.md", f"multishot-memory-{kind}", head + table)
 

@@ -39,21 +39,17 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from benchutil import ROOT, git_rev, machine, md_table, update_section, write_json
+from benchutil import (ROOT, cached_scene, command_line, default_preset, md_table, provenance_line,
+                       update_section, write_results)
 
 N_SCENE_VIEWS = 10
 
 
 def make_scene(cache: Path, pattern: str, size: int, shape: str, device: str):
-    from fastneus.data import Scene
-    from fastneus.synth import synthesize
-
     d = cache / f"{shape}-{pattern}-{N_SCENE_VIEWS}v-{size}"
-    if not (d / "scene.json").is_file():
-        rig = dict(baselines=None, illum="dark") if pattern == "crosslaser" else dict(baselines=(0.6,), illum="normal")
-        synthesize(d, shape=shape, views=N_SCENE_VIEWS, size=(size, size), pattern=pattern, seed=0, device=device,
-                   progress=False, contact_sheet=False, **rig)
-    return Scene.load(d)
+    rig = dict(baselines=None, illum="dark") if pattern == "crosslaser" else dict(baselines=(0.6,), illum="normal")
+    return cached_scene(d, shape=shape, views=N_SCENE_VIEWS, size=(size, size), pattern=pattern, seed=0,
+                        device=device, contact_sheet=False, **rig)
 
 
 def pick_views(n: int) -> list[int]:
@@ -74,7 +70,7 @@ def run_fastneus(scene, views: list[int], device: str, budget: float, extra: lis
         if not gpu:
             base.update(ONESHOT_CPU)
     else:
-        preset = "fewview" if gpu else "cpu-quick"
+        preset = default_preset(device)
     cfg = load_config(preset, [f"time_budget={budget}"] + list(extra), base=base)
     t = time.perf_counter()
     trainer, m = train_scene(scene, cfg, out, device)
@@ -246,19 +242,17 @@ def main() -> None:
 
         fig_path = out / f"pattern-study-{kind}.png"
         write_png(fig_path, figure(panels))
-    write_json(out / f"pattern-study-{kind}.json", {"machine": machine(args.device), "git": git_rev(), "budget": budget,
-                                                   "size": args.size, "shape": args.shape, "rows": rows})
-    ov = (" " + " ".join(args.overrides)) if args.overrides else ""
+    cmd = command_line("pattern_study.py")
     head = (f"### Pattern study ({kind.upper()}): {args.shape}, {args.size}x{args.size}, {budget:g} s of training\n\n"
-            f"Machine: {machine(args.device)}; commit {git_rev()}. Command: `python scripts/pattern_study.py "
-            f"--device {args.device} --size {args.size} --budget {budget:g} --shape {args.shape}{ov}`. One projector "
+            f"{provenance_line(args.device, cmd)} One projector "
             "at 0.6 m, Normal light (crosslaser: 4 projectors, Dark); 1, 3, 10 viewpoints of one orbit; depth error "
             "of the visible surface on every used viewpoint (mesh ray-cast vs GT depth; % of depth; within 1% counts "
             "holes as misses; lit/unlit = pattern-lit pixels of one-shot frames). time_s: training seconds "
             "(fastneus) or decoding + triangulation seconds (decoder). One run per row.\n\n")
     text = head + table + (("\nGray code, fastneus against the decoder at equal viewpoints (same pixels: mean error where the "
                           "GT, the decoder and the mesh all have a surface; 'more accurate' is judged there):\n\n") + cmp if cmp else "")
-    (out / f"pattern-study-{kind}.md").write_text(text)
+    write_results(out, f"pattern-study-{kind}", {"budget": budget, "size": args.size, "shape": args.shape,
+                                                 "rows": rows}, text, args.device, cmd)
     if not args.no_md:
         if fig_path is not None:
             dst = ROOT / "docs" / "benchmarks" / fig_path.name

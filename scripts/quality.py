@@ -29,13 +29,13 @@ from __future__ import annotations
 
 import argparse
 import json
-import statistics
 import time
 from pathlib import Path
 
 import torch
 
-from benchutil import ROOT, git_rev, machine, md_table, update_section, write_json
+from benchutil import (ROOT, cached_scene, command_line, default_preset, md_table, median, provenance_line,
+                       update_section, write_results)
 
 ASSETS = Path(__file__).resolve().parent / ".assets"
 BUILTIN = ("rock", "toy", "torus", "sphere")
@@ -52,24 +52,19 @@ def scene_dir(cache: Path, shape: str, illum: str, views: int, size: int) -> Pat
 
 def make_scene(cache: Path, shape: str, illum: str, views: int, size: int, device: str, assets: Path):
     """Synthesise (once) and load a matrix scene."""
-    from fastneus.data import Scene
-    from fastneus.synth import synthesize
-
     d = scene_dir(cache, shape, illum, views, size)
-    if not (d / "scene.json").is_file():
-        src = dict(shape=shape) if shape in BUILTIN else dict(mesh=assets / f"{shape}.ply")
-        if "mesh" in src and not src["mesh"].is_file():
-            raise SystemExit(f"{src['mesh']}: missing; run `python scripts/assets.py` once (needs usd-core)")
-        synthesize(d, views=views, size=(size, size), illum=illum, pattern="crosslaser", seed=0, device=device,
-                   progress=False, contact_sheet=True, **src)
-    return Scene.load(d)
+    src = dict(shape=shape) if shape in BUILTIN else dict(mesh=assets / f"{shape}.ply")
+    if not (d / "scene.json").is_file() and "mesh" in src and not src["mesh"].is_file():
+        raise SystemExit(f"{src['mesh']}: missing; run `python scripts/assets.py` once (needs usd-core)")
+    return cached_scene(d, views=views, size=(size, size), illum=illum, pattern="crosslaser", seed=0, device=device,
+                        contact_sheet=True, **src)
 
 
 def run_cell(scene, device: str, budget: float, masks: str, extra: list[str], out: Path) -> dict:
     from fastneus.config import load_config
     from fastneus.pipeline import train_scene
 
-    preset = "fewview" if device.startswith("cuda") else "cpu-quick"
+    preset = default_preset(device)
     ov = [f"time_budget={budget}"] + (["masks=off"] if masks == "off" else []) + list(extra)
     cfg = load_config(preset, ov)
     t = time.perf_counter()
@@ -107,9 +102,9 @@ def summarise(rows: list[dict], budgets: list[float]) -> tuple[str, dict]:
             if on and on.get("chamfer_sym_mm"):
                 ratios_nomask.append(r["chamfer_sym_mm"] / on["chamfer_sym_mm"])
     if ratios_floater:
-        checks["no-mask rec->GT / GT->rec (max, median)"] = (max(ratios_floater), statistics.median(ratios_floater))
+        checks["no-mask rec->GT / GT->rec (max, median)"] = (max(ratios_floater), median(ratios_floater))
     if ratios_nomask:
-        checks["no-mask sym / masked sym (max, median)"] = (max(ratios_nomask), statistics.median(ratios_nomask))
+        checks["no-mask sym / masked sym (max, median)"] = (max(ratios_nomask), median(ratios_nomask))
     mono = []
     for key in {(r["variant"], r["shape"], r["illum"], r["masks"]) for r in rows}:
         seq = [by[key + (b,)]["chamfer_sym_mm"] for b in budgets if key + (b,) in by]
@@ -186,13 +181,11 @@ def main() -> None:
     print(text)
     for k, v in checks.items():
         print(f"{k}: {v}")
-    write_json(out / f"quality-{tag}.json", {"machine": machine(args.device), "git": git_rev(), "rows": rows,
-                                            "checks": {k: str(v) for k, v in checks.items()}})
-    (out / f"quality-{tag}.md").write_text(text)
+    cmd = command_line("quality.py")
+    write_results(out, f"quality-{tag}", {"rows": rows, "checks": {k: str(v) for k, v in checks.items()}}, text,
+                  args.device, cmd)
     if not args.no_md:
-        ov = (" " + " ".join(args.overrides)) if args.overrides else ""
-        head = (f"### Quality matrix on {kind.upper()} ({tag})\n\nMachine: {machine(args.device)}; commit {git_rev()}. "
-                f"Command: `python scripts/quality.py --device {args.device}{ov}` (scenes: {args.views} views "
+        head = (f"### Quality matrix on {kind.upper()} ({tag})\n\n{provenance_line(args.device, cmd)} (scenes: {args.views} views "
                 f"{args.size}x{args.size}, 4 cross-laser projectors, object ~2 m across; default preset, "
                 f"`time_budget` per column; 'off' = masks hidden from the run). One run per cell.\n\n")
         chk = "".join(f"- {k}: {v}\n" for k, v in checks.items())

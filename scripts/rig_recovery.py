@@ -50,7 +50,7 @@ from pathlib import Path
 
 import torch
 
-from benchutil import git_rev, machine, md_table, write_json
+from benchutil import default_preset, git_rev, machine, md_table, write_results
 
 PARTS = ("pose", "blur", "laser", "water")
 args_points = 100_000  # --points
@@ -68,7 +68,7 @@ def train(scene, device: str, budget: float, out: Path, extra: list[str]) -> tup
     if not isinstance(ev.geometry_metrics, partial):  # --points: Chamfer sample count (finish_run's metrics)
         ev.geometry_metrics = partial(ev.geometry_metrics, n_points=args_points)
 
-    preset = "fewview" if device.startswith("cuda") else "cpu-quick"
+    preset = default_preset(device)
     length = [f"steps={args_steps}"] if args_steps else [f"time_budget={budget}"]
     cfg = load_config(preset, length + ["mesh_resolution=256"] + list(extra))
     t = time.perf_counter()
@@ -242,19 +242,17 @@ def main() -> None:
 
 
 def report(args, out: Path, parts: list[str], rows: list[dict], seconds: float) -> None:
-    head = (f"`python scripts/rig_recovery.py --device {args.device} --parts {','.join(parts)} "
-            f"{'--steps ' + str(args.steps) if args.steps else '--budget ' + format(args.budget, 'g')} "
-            f"--size {args.size} --views {args.views} --shape {args.shape}` on {machine(args.device)}, "
-            f"git {git_rev()}, {seconds:.0f} s in all. Chamfer in mm.\n")
+    cmd = (f"python scripts/rig_recovery.py --device {args.device} --parts {','.join(parts)} "
+           f"{'--steps ' + str(args.steps) if args.steps else '--budget ' + format(args.budget, 'g')} "
+           f"--size {args.size} --views {args.views} --shape {args.shape}")  # the parts done so far
+    head = f"`{cmd}` on {machine(args.device)}, git {git_rev()}, {seconds:.0f} s in all. Chamfer in mm.\n"
     md = [head]
     fmt = dict(vars(args), pose_m_mm=args.pose_m * 1000)
     for p in parts:
         sub = [r for r in rows if r["part"] == p]
         md.append(f"\n**{TITLES[p].format(**fmt)}**\n\n" + md_table(sub, TABLES[p]))
-    (out / "rig-recovery.md").write_text("".join(md))
-    write_json(out / "rig-recovery.json", {"args": {k: v for k, v in vars(args).items()}, "rows": rows,
-                                           "machine": machine(args.device), "git": git_rev(),
-                                           "seconds": round(seconds, 1)})
+    write_results(out, "rig-recovery", {"args": dict(vars(args)), "rows": rows, "seconds": round(seconds, 1)},
+                  "".join(md), args.device, cmd)
 
 if __name__ == "__main__":
     main()

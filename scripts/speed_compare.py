@@ -22,17 +22,21 @@ maxrss, each method in its own process unless --no-isolate), Chamfer and PSNR at
 and the training time from which the Chamfer stays at or below the target (default: the
 baseline's Chamfer at the largest budget), read off the evaluation points (so quantised to them).
 
-fastneus uses the fewview preset on CUDA and cpu-quick on CPU, with time_budget = the largest
+fastneus is the real trainer, built as `fastneus train` builds it (fastneus.train.trainer.Trainer;
+the fewview preset on CUDA and cpu-quick on CPU, plus --set), with time_budget = the largest
 budget (its cosine lr and inv_s-floor schedules span that budget, so an early budget sees an
-early-schedule model). The baseline keeps the paper's step-based schedule (lr warm-up 5000
+early-schedule model). Like Trainer.fit, the kernels are loaded before the clock starts and the
+geometry initialisation (init_geometry) counts as training time; every step is the unmodified
+Trainer.train_step (masks, background prior, rig corrections, multi-shot, NaN guard included). The baseline keeps the paper's step-based schedule (lr warm-up 5000
 steps, ...), which is what "the paper's method for the same wall-clock time" means.
 
 fastneus's SDF gradient follows its config (`--set sdf_grad=analytic` for the fused
 features + Jacobian path, default fd: 4 finite-difference taps).
 
---breakdown (always on with --device cuda) re-does fastneus training steps phase by phase,
-with a device synchronisation between phases, after the comparison run (the trained state):
-median ms per phase over --breakdown-steps steps; the real trainer is not instrumented.
+--breakdown (always on with --device cuda) times --breakdown-steps more real training steps
+after the comparison run (the trained state) phase by phase (benchutil.StepPhases: the step's
+parts are wrapped with a device-synchronising timer; nothing is re-implemented): median ms per
+phase, the occupancy update as its mean over the steps (it runs every occ_update_every steps).
 
 Outputs in --out: speed-compare-<device>.json, .md, chamfer-vs-time-<device>.png; the
 Markdown is printed and (unless --no-md) written to the "speed-compare-<device>" section of
@@ -60,8 +64,6 @@ import argparse
 import json
 import math
 import os
-import resource
-import statistics
 import subprocess
 import sys
 import time
@@ -70,43 +72,22 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from benchutil import ROOT, git_rev, machine, md_table, update_section, write_json
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from benchutil import (ROOT, command_line, git_rev, machine, make_trainer, md_table, parse_sets,  # noqa: E402
+                       peak_mem_mb, phase_breakdown, provenance_line, ratio, sync, update_section, write_json,
+                       write_results)
 
 METHODS = ("warp", "torch", "baseline")
 LABELS = {"warp": "fastneus (Warp)", "torch": "fastneus (torch twins)", "baseline": "ActiveNeuS baseline (NeuS MLP)"}
-PHASES = ("ray generation", "marching", "hash encoding", "MLPs", "rendering", "loss + backward", "optimiser",
-          "occupancy update")
 
 
 # ----------------------------------------------------------------------------- helpers
-def sync(device: str) -> None:
-    if device.startswith("cuda"):
-        torch.cuda.synchronize()
-
-
-def peak_mem_mb(device: str) -> float:
-    """GPU: torch's peak allocation since the last reset; CPU: the process's peak RSS."""
-    if device.startswith("cuda"):
-        return torch.cuda.max_memory_allocated() / 2 ** 20
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # Linux: KiB
-
-
 def eval_times(budgets: list[float], extra: int) -> list[float]:
     """t = 0, the budgets, and ``extra`` halvings of the largest budget below it (geometric spacing)."""
     top = max(budgets)
     ts = {0.0, *budgets}
     ts.update(top * 2.0 ** -k for k in range(1, extra + 1))
     return sorted(round(t, 3) for t in ts)
-
-
-def parse_sets(items: list[str]) -> dict[str, str]:
-    out = {}
-    for it in items or []:
-        if "=" not in it:
-            raise SystemExit(f"expected key=value, got {it!r}")
-        k, v = it.split("=", 1)
-        out[k.strip()] = v
-    return out
 
 
 def split_frames(scene) -> tuple[list[int], int, bool]:
@@ -118,8 +99,8 @@ def split_frames(scene) -> tuple[list[int], int, bool]:
 
 
 # ----------------------------------------------------------------------------- trainers
-def make_trainer(method: str, scene, args, out: Path, frames: list[int], warmup: bool = False):
-    """A fastneus Trainer (backend warp or torch) or the baseline trainer."""
+def build_trainer(method: str, scene, args, out: Path, frames: list[int], warmup: bool = False):
+    """The real fastneus Trainer (backend warp or torch) or the baseline trainer."""
     if method == "baseline":
         from fastneus.baselines import BaselineTrainer
 
@@ -127,30 +108,41 @@ def make_trainer(method: str, scene, args, out: Path, frames: list[int], warmup:
         if warmup:
             sets["n_rays"] = "16"
         return BaselineTrainer(scene, out, args.device, frames=frames, **sets)
-    from fastneus.config import load_config
-    from fastneus.train.trainer import Trainer
-
-    preset = "fewview" if args.device.startswith("cuda") else "cpu-quick"
-    ov = [f"backend={method}", "steps=100000000", f"time_budget={max(args.budgets)}",
-          f"frames={json.dumps(frames)}", "log_every=1000000", "save_every=100000000"] + (
-        [f"threads={args.threads}"] if args.threads else []) + list(args.set)
-    cfg = load_config(preset, ov)
-    return Trainer(scene, cfg, out, args.device)
+    ov = [f"backend={method}", "steps=100000000", f"time_budget={max(args.budgets)}", f"frames={json.dumps(frames)}"]
+    ov += ([f"threads={args.threads}"] if args.threads else []) + list(args.set)
+    return make_trainer(scene, args.device, ov, out)
 
 
 def warm_up(method: str, scene, args, out: Path, frames: list[int]) -> None:
-    """Load/compile kernels, CUDA context and BLAS handles on a throwaway trainer (not timed)."""
-    tr = make_trainer(method, scene, args, out / "warmup", frames, warmup=True)
-    for _ in range(2):
-        tr.train_step()
+    """Load/compile kernels, CUDA context and BLAS handles on a throwaway trainer (not timed):
+    two steps in the occupancy warm-up, two after it (the first of which updates the grid)."""
+    tr = build_trainer(method, scene, args, out / "warmup", frames, warmup=True)
     if method != "baseline":
-        c = tr.cfg
-        tr.grid.update(tr.field.sdf, 20.0, c.march_step, threshold=c.occ_threshold, backend=c.backend)
+        tr.prime()
+    for i in range(4):
+        if i == 2 and method != "baseline":
+            tr.elapsed = 0.5 * tr.cfg.time_budget  # past the occupancy warm-up: the real grid update runs
         tr.train_step()
     sync(args.device)
     del tr
     if args.device.startswith("cuda"):
         torch.cuda.empty_cache()
+
+
+def start_clock(method: str, tr) -> float:
+    """What Trainer.fit does before its loop: kernels loaded (not timed), then the geometry
+    initialisation (timed: it counts as training). Returns the seconds it took."""
+    if method == "baseline":
+        return 0.0
+    from fastneus.geometry_init import initialise_geometry
+
+    tr.prime()
+    t = time.perf_counter()
+    note = initialise_geometry(tr)
+    sync(str(tr.device))
+    if note:
+        print(f"[{method}] {note}", flush=True)
+    return time.perf_counter() - t if note else 0.0
 
 
 # ----------------------------------------------------------------------------- evaluation
@@ -201,128 +193,6 @@ def evaluate(trainer, scene, args, frames: list[int], eval_frame: int) -> dict:
             "fscore": g.get("fscore", math.nan), "psnr": psnr, "eval_s": round(time.perf_counter() - t, 2)}
 
 
-# ----------------------------------------------------------------------------- per-phase breakdown
-class PhaseTimer:
-    """Accumulates device-synchronised wall time per phase for one step."""
-
-    def __init__(self, device: str):
-        self.device, self.ms = device, {p: 0.0 for p in PHASES}
-        sync(device)
-        self.t = time.perf_counter()
-
-    def lap(self, phase: str) -> None:
-        sync(self.device)
-        now = time.perf_counter()
-        self.ms[phase] += (now - self.t) * 1000
-        self.t = now
-
-
-def _sdf_and_grad_phased(field, x: torch.Tensor, pt: PhaseTimer):
-    """``SDFField.sdf_and_grad`` split into hash encoding and MLP phases (same maths).
-
-    With ``sdf_grad=analytic`` the hash phase is the fused features + Jacobian kernel and the
-    MLP phase holds the MLP forward, its input gradient (autograd, graph kept) and jac^T g.
-    """
-    if getattr(field, "sdf_grad", "fd") == "analytic":
-        feats, jac = field.encode_jac(((x + 1.0) * 0.5).contiguous(), field.table, field.grid_cfg,
-                                      field.active_levels)
-        pt.lap("hash encoding")
-        net_in = torch.cat([x, feats], dim=-1)
-        if not net_in.requires_grad:
-            net_in = net_in.detach().requires_grad_()
-        out = field.sdf_net(net_in)
-        (g,) = torch.autograd.grad(out[:, 0].sum(), net_in, create_graph=True)
-        grad = g[:, :3] + 0.5 * torch.bmm(g[:, None, 3:], jac)[:, 0]
-        pt.lap("MLPs")
-        return out[:, 0], out[:, 1:], grad
-    n = x.shape[0]
-    eps = field.normal_eps()
-    taps = x[None, :, :] + eps * field._tetra[:, None, :]
-    xa = torch.cat([x, taps.reshape(-1, 3)], 0)
-    u = ((xa + 1.0) * 0.5).clamp(0.0, 1.0)
-    feats = field.encode(u.contiguous(), field.table, field.grid_cfg, field.active_levels)
-    pt.lap("hash encoding")
-    out = field.sdf_net(torch.cat([xa, feats], dim=-1))
-    sdf, geo = out[:n, 0], out[:n, 1:]
-    f_taps = out[n:, 0].reshape(4, n)
-    grad = (f_taps[:, :, None] * field._tetra[:, None, :]).sum(0) / (4.0 * eps)
-    pt.lap("MLPs")
-    return sdf, geo, grad
-
-
-def phased_step(tr, pt: PhaseTimer) -> int:
-    """One fastneus training step re-done phase by phase (mirrors Trainer.train_step).
-
-    The occupancy update runs every step here and is reported amortised (/ occ_update_every).
-    Returns the number of samples.
-    """
-    from fastneus.kernels import get_op
-
-    c = tr.cfg
-    tr.field.set_progress(tr.progress())
-    tr.grid.update(tr.field.sdf, float(tr.field.inv_s().detach()), c.march_step, threshold=c.occ_threshold,
-                   margin=math.sqrt(3) / tr.grid.resolution, backend=c.backend)
-    pt.lap("occupancy update")
-    tr._set_lr(tr.progress())
-    batch = tr.bank.sample(tr.n_rays, tr.gen, bright_fraction=c.bright_fraction)
-    o, d, fidx = batch["origins"], batch["dirs"], batch["fidx"]
-    n = o.shape[0]
-    pt.lap("ray generation")
-    jit = torch.rand(n, device=o.device)
-    offsets, counts, t0, t1, ray_index = get_op("march_rays", c.backend)(
-        o, d, tr.grid.bits, tr.grid.resolution, c.march_step, c.max_samples_per_ray, jit, c.bound, 0.0)
-    s = t0.shape[0]
-    ri = ray_index.long()
-    d_s = d[ri]
-    pos = o[ri] + d_s * ((t0 + t1) * 0.5)[:, None]
-    pt.lap("marching")
-    if s == 0:
-        tr.step += 1
-        return 0
-    sdf, geo, grad = _sdf_and_grad_phased(tr.field, pos, pt)
-    color = tr.field.color(pos, grad, d_s, geo)
-    pt.lap("MLPs")
-    i_r, i_b = tr.illumination()
-    out = get_op("render_pattern", c.backend)(
-        sdf, grad, color, pos, t0, t1, ray_index, offsets, counts, d, fidx, tr.proj.K, tr.proj.W,
-        tr.proj.pattern if c.use_pattern else torch.full_like(tr.proj.pattern, -1), tr.proj.store,
-        tr.field.inv_s(), float(tr.cos_anneal()), i_r, i_b)
-    pt.lap("rendering")
-    n_rand = max(256, tr.n_rays // 4)
-    xr = torch.rand(n_rand, 3, device=o.device, generator=tr.gen) * 2 - 1
-    pt.lap("ray generation")
-    _, _, grad_r = _sdf_and_grad_phased(tr.field, xr, pt)
-    pred = out["color"] + c.background * (1.0 - out["opacity"])[:, None]
-    loss = (pred - batch["rgb"]).abs().mean()
-    loss = loss + c.eikonal_weight * ((torch.cat([grad, grad_r]).norm(dim=-1) - 1.0) ** 2).mean()
-    tr.opt.zero_grad(set_to_none=True)
-    loss.backward()
-    pt.lap("loss + backward")
-    tr.opt.step()
-    tr.step += 1
-    pt.lap("optimiser")
-    return s
-
-
-def breakdown(tr, device: str, steps: int, warmup: int = 5) -> dict:
-    """Median ms per phase over ``steps`` phased steps (after ``warmup``)."""
-    per: dict[str, list[float]] = {p: [] for p in PHASES}
-    samples = []
-    for i in range(warmup + steps):
-        pt = PhaseTimer(device)
-        s = phased_step(tr, pt)
-        if i >= warmup:
-            pt.ms["occupancy update"] /= tr.cfg.occ_update_every
-            for p in PHASES:
-                per[p].append(pt.ms[p])
-            samples.append(s)
-    med = {p: statistics.median(v) for p, v in per.items()}
-    total = sum(med.values())
-    return {"steps": steps, "rays": tr.n_rays, "samples_median": statistics.median(samples),
-            "occ_update_every": tr.cfg.occ_update_every, "total_ms": total,
-            "phases": [{"phase": p, "ms": med[p], "share_pct": 100 * med[p] / max(total, 1e-9)} for p in PHASES]}
-
-
 # ----------------------------------------------------------------------------- one method
 def run_method(method: str, args) -> dict:
     """Train one method up to the largest budget, evaluating at each evaluation point."""
@@ -335,11 +205,12 @@ def run_method(method: str, args) -> dict:
     cuda = args.device.startswith("cuda")
     if not args.no_warmup:
         warm_up(method, scene, args, out, frames)
-    tr = make_trainer(method, scene, args, out, frames)
+    tr = build_trainer(method, scene, args, out, frames)
     if cuda:
         torch.cuda.reset_peak_memory_stats()
     times = eval_times(args.budgets, args.extra_points)
-    clock, steps, samples, peak_train = 0.0, 0, 0, 0.0
+    clock, steps, samples, peak_train = start_clock(method, tr), 0, 0, 0.0
+    tr.elapsed = clock
     points, cache = [], None
     print(f"[{method}] training to {max(args.budgets)} s; evaluation at {times}", flush=True)
     for t_eval in times:
@@ -348,7 +219,7 @@ def run_method(method: str, args) -> dict:
             rec = tr.train_step()
             sync(args.device)  # the step's GPU work belongs to its time
             clock += time.perf_counter() - t0
-            tr.elapsed = clock  # drives fastneus's time-based schedules, as in Trainer.fit
+            tr.elapsed = clock  # drives the time-based schedules, as in Trainer.fit
             steps += 1
             if rec is not None:
                 samples += int(rec["samples"])
@@ -370,7 +241,7 @@ def run_method(method: str, args) -> dict:
            "eval_frame_held_out": held, "train_frames": frames,
            "config": {k: (list(v) if isinstance(v, tuple) else v) for k, v in tr.cfg.to_dict().items()}}
     if method != "baseline" and (args.breakdown or cuda):
-        res["breakdown"] = breakdown(tr, args.device, args.breakdown_steps)
+        res["breakdown"] = phase_breakdown({method: tr}, args.breakdown_steps)[method]
     return res
 
 
@@ -439,9 +310,9 @@ def wallclock(args) -> None:
                   **{k: r["mesh_detail"].get(k, "") for k in ("coarse_s", "fine_s", "cells_s", "mc_s", "filter_s")}}
                  for c, r in zip(cols, rows)]
     compiled = sorted({m for r in rows for m in r["compiled"]})
-    cmd = "python scripts/speed_compare.py " + " ".join(sys.argv[1:])
+    cmd = command_line("speed_compare.py")
     text = (f"### End-to-end wall clock on {kind.upper()}: {Path(args.scene).name}\n\n"
-            f"Machine: {machine(args.device)}; commit {git_rev()}; {time.strftime('%Y-%m-%d')}. Command: `{cmd}`.\n"
+            f"{provenance_line(args.device, cmd)}\n"
             f"One fresh `fastneus train` process per column (preset {rows[0]['preset']}); seconds from the process "
             f"start (metrics.json `timing`). startup = interpreter, torch import and argument parsing; mesh_ready_s ="
             f" when mesh.ply was written; over_budget_s = mesh_ready_s - budget (target <= 5 s); process_s = the "
@@ -453,10 +324,8 @@ def wallclock(args) -> None:
             + md_table(mesh_rows, ["run", "res", "mc", "points_M", "dense_M", "cells", "coarse_s", "fine_s", "cells_s",
                                    "mc_s", "filter_s"]))
     print(text)
-    write_json(out / f"wallclock-{kind}.json", {"machine": machine(args.device), "git": git_rev(), "command": cmd,
-                                                "scene": str(args.scene), "rows": rows,
-                                                "wall_s": round(time.perf_counter() - t_all, 1)})
-    (out / f"wallclock-{kind}.md").write_text(text)
+    write_results(out, f"wallclock-{kind}", {"scene": str(args.scene), "rows": rows,
+                                              "wall_s": round(time.perf_counter() - t_all, 1)}, text, args.device, cmd)
     print(f"wrote {out / f'wallclock-{kind}.json'} and .md")
     if not args.no_md:
         update_section(ROOT / "docs" / "benchmarks" / "wallclock.md", f"wallclock-{kind}", text)
@@ -549,7 +418,7 @@ def summarise(results: list[dict], args) -> tuple[list[dict], float | None, str]
                    "t_to_target_s": "not reached" if ttt is None and target is not None else (ttt if ttt is not None else ""),
                    }
             if ttt is not None and t_base:
-                row["speed-up_to_target"] = f"{t_base / max(ttt, 1e-9):.1f}x" if ttt > 0 else "at t=0"
+                row["speed-up_to_target"] = f"{ratio(t_base, ttt):.1f}x" if ttt > 0 else "at t=0"
             rows.append(row)
     return rows, target, src
 
@@ -563,10 +432,10 @@ def breakdown_md(results: list[dict]) -> str:
         rows = [{"phase": p["phase"], "ms": p["ms"], "share_%": p["share_pct"]} for p in bd["phases"]]
         rows.append({"phase": "**total**", "ms": bd["total_ms"], "share_%": 100.0})
         parts.append(f"Per-phase breakdown, {r['label']} ({r.get('threads', '?')} threads; median of {bd['steps']} "
-                     f"steps after the comparison run; "
-                     f"{bd['rays']} rays, {bd['samples_median']:.0f} samples per step; occupancy update amortised "
-                     f"over {bd['occ_update_every']} steps; device synchronised between phases, so the sum exceeds "
-                     f"an unsynchronised step):\n\n" + md_table(rows, ["phase", "ms", "share_%"]))
+                     f"real Trainer.train_step calls after the comparison run; "
+                     f"{bd['rays']} rays, {bd['samples_median']:.0f} samples per step; occupancy update: mean over "
+                     f"the steps (it runs every {bd['occ_update_every']}); device synchronised around each phase, so "
+                     f"the sum exceeds an unsynchronised step):\n\n" + md_table(rows, ["phase", "ms", "share_%"]))
     return "\n".join(parts)
 
 
@@ -641,10 +510,9 @@ def main() -> None:
         # one process per method: CPU peak RSS is per process, and no method inherits another's caches
         part = out / f"part-{m}.json"
         cmd = [sys.executable, str(Path(__file__).resolve())] + sys.argv[1:] + ["--worker", m, "--worker-out", str(part)]
-        env = dict(os.environ, PYTHONPATH=str(ROOT / "scripts") + os.pathsep + os.environ.get("PYTHONPATH", ""))
-        subprocess.run(cmd, check=True, env=env)
+        subprocess.run(cmd, check=True)
         results.append(json.loads(part.read_text()))
-    cmd = "python scripts/speed_compare.py " + " ".join(sys.argv[1:])
+    cmd = command_line("speed_compare.py")
     report(results, args, cmd, machine(args.device), git_rev(), round(time.perf_counter() - t_all, 1))
 
 

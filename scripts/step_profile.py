@@ -19,7 +19,6 @@ Writes ``OUT/step-profile.json`` and ``OUT/step-profile.md``; prints the Markdow
 from __future__ import annotations
 
 import argparse
-import statistics
 import sys
 import time
 from pathlib import Path
@@ -27,7 +26,8 @@ from pathlib import Path
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from benchutil import git_rev, machine, md_table, write_json  # noqa: E402
+from benchutil import (command_line, default_preset, make_trainer, md_table, median, provenance_line,  # noqa: E402
+                       ratio, write_results)
 
 SYNC_NAMES = ("cudaStreamSynchronize", "cudaDeviceSynchronize", "cudaEventSynchronize")
 
@@ -88,13 +88,13 @@ def profile_steps(tr, steps: int) -> dict:
         per["gpu_busy_ms"].append(_union_ms(dev_iv))
         per["syncs"].append(n_sync)
         per["samples"].append(float(st.get("samples", 0)) if isinstance(st, dict) else 0.0)
-    med = {k: statistics.median(v) for k, v in per.items()}
-    med["gpu_idle_pct"] = 100.0 * max(0.0, 1.0 - med["gpu_busy_ms"] / max(med["wall_ms"], 1e-9))
-    med["samples_per_s_M"] = med["samples"] / max(med["wall_ms"], 1e-9) / 1000.0
+    med = {k: median(v) for k, v in per.items()}
+    med["gpu_idle_pct"] = 100.0 * max(0.0, 1.0 - ratio(med["gpu_busy_ms"], med["wall_ms"]))
+    med["samples_per_s_M"] = ratio(med["samples"], med["wall_ms"]) / 1000.0
     top = sorted(kernel_ms.items(), key=lambda kv: -kv[1])[:12]
     total_k = sum(kernel_ms.values())
     return {"steps": steps, "median": med,
-            "top_kernels": [{"kernel": k[:90], "ms_per_step": v / steps, "share_pct": 100 * v / max(total_k, 1e-9)}
+            "top_kernels": [{"kernel": k[:90], "ms_per_step": v / steps, "share_pct": 100 * ratio(v, total_k)}
                             for k, v in top]}
 
 
@@ -108,36 +108,29 @@ def main() -> None:
     ap.add_argument("overrides", nargs="*", help="key=value config overrides")
     args = ap.parse_intermixed_args()  # key=value overrides may follow the options
 
-    from fastneus.config import load_config
     from fastneus.formats.detect import load_scene
     from fastneus.kernels import prepare_kernels
-    from fastneus.train.trainer import Trainer
 
     out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
     scene = load_scene(Path(args.scene))
-    preset = "fewview" if args.device.startswith("cuda") else "cpu-quick"
+    preset = default_preset(args.device)
     prepare_kernels(args.device, say=print)
-    cfg = load_config(preset, ["log_every=1000000", "save_every=100000000"] + list(args.overrides))
-    torch.manual_seed(0)
-    tr = Trainer(scene, cfg, out / "run", args.device)
+    tr = make_trainer(scene, args.device, args.overrides, out / "run", preset)
     for _ in range(args.warm_steps):
         tr.train_step()
     res = profile_steps(tr, args.steps)
     m = res["median"]
-    head = (f"`python scripts/step_profile.py {args.scene} --device {args.device} --warm-steps {args.warm_steps} "
-            f"--steps {args.steps} {' '.join(args.overrides)}`".replace("  ", " ").replace(" `", "`")
-            + f" on {machine(args.device)}, git {git_rev()}; medians per step ({preset} preset, "
-            f"{tr.n_rays} rays per step).\n\n")
+    cmd = command_line("step_profile.py")
+    head = (f"{provenance_line(args.device, cmd)} Medians per step ({preset} preset, {tr.n_rays} rays per step)."
+            "\n\n")
     row = {k: round(v, 2) for k, v in m.items()}
     md = head + md_table([row], ["wall_ms", "gpu_busy_ms", "gpu_idle_pct", "kernels", "copies", "syncs", "samples",
                                  "samples_per_s_M"])
     md += "\n\nKernels taking the most device time (ms per step, share of all kernel time):\n\n"
     md += md_table([{k: (round(v, 3) if isinstance(v, float) else v) for k, v in r.items()}
                     for r in res["top_kernels"]], ["kernel", "ms_per_step", "share_pct"])
-    (out / "step-profile.md").write_text(md + "\n")
-    write_json(out / "step-profile.json", {"args": vars(args), "machine": machine(args.device), "git": git_rev(),
-                                           "preset": preset, "rays": tr.n_rays, **res})
+    write_results(out, "step-profile", {"args": vars(args), "preset": preset, "rays": tr.n_rays, **res}, md,
+                  args.device, cmd)
     print(md)
 
 

@@ -78,24 +78,37 @@ def test_speed_compare_wallclock_cpu(tiny_scene, tmp_path):
 
 
 @pytest.mark.parametrize("mode", ["fd", "analytic"])
-def test_phased_sdf_and_grad_matches_field(mode):
-    """The breakdown's phase-split SDF gradient is the field's own (both sdf_grad modes)."""
+def test_step_phases_time_the_real_step(tiny_scene, tmp_path, mode):
+    """The breakdown wraps the real Trainer.train_step's parts: the step's result is unchanged
+    (same loss and parameters as an untimed twin), every phase is seen, and the wrappers go."""
     import torch
 
     sys.path.insert(0, str(ROOT / "scripts"))
     try:
-        import speed_compare
+        import benchutil
     finally:
         sys.path.pop(0)
-    from fastneus.config import load_config
-    from fastneus.field.model import SDFField
+    import fastneus.field.renderer as renderer
+    from fastneus.data import Scene
 
-    cfg = load_config("cpu-quick", [f"sdf_grad={mode}", "log2_table=12", "levels=4", "finest_res=64"])
-    field = SDFField(cfg, "cpu")
-    with torch.no_grad():
-        field.table.mul_(1e3)
-        field.sdf_net[0].weight[:, 3:].normal_()
-    x = torch.rand(257, 3) * 2 - 1
-    s, geo, g, _ = field.sdf_and_grad(x)
-    s2, geo2, g2 = speed_compare._sdf_and_grad_phased(field, x, speed_compare.PhaseTimer("cpu"))
-    assert torch.allclose(s, s2) and torch.allclose(geo, geo2) and torch.allclose(g, g2, rtol=1e-5, atol=1e-5)
+    scene = Scene.load(tiny_scene)
+    ov = ["backend=torch", f"sdf_grad={mode}", "occ_resolution=32", "init_rays=128", "steps=4", "occ_warmup_frac=0"]
+    a = benchutil.make_trainer(scene, "cpu", ov, tmp_path / "a")
+    b = benchutil.make_trainer(scene, "cpu", ov, tmp_path / "b")
+    get_op, encode = renderer.get_op, b.field.encode
+    for i in range(2):
+        torch.manual_seed(i)  # the ray jitter draws from the global generator
+        ra = a.train_step()
+        torch.manual_seed(i)
+        with benchutil.StepPhases(b) as sp:
+            ms, wall, rb = sp.step()
+        assert float(ra["loss"]) == pytest.approx(float(rb["loss"]), rel=1e-5)
+    for pa, pb in zip(a.field.parameters(), b.field.parameters()):
+        assert torch.allclose(pa, pb, rtol=1e-5, atol=1e-6)
+    assert set(ms) == set(benchutil.PHASES) and wall > 0
+    for p in ("ray generation", "marching", "hash encoding", "MLPs", "rendering", "loss + backward", "optimiser"):
+        assert ms[p] > 0, p
+    assert sum(ms.values()) == pytest.approx(wall, rel=1e-6)
+    assert renderer.get_op is get_op and b.field.encode is encode and "sdf_and_grad" not in vars(b.field)
+    res = benchutil.phase_breakdown({"b": b}, steps=2, warmup=0)["b"]
+    assert [p["phase"] for p in res["phases"]] == list(benchutil.PHASES) and res["total_ms"] > 0
