@@ -59,6 +59,50 @@ def _(c):
     return c.train(c.npz("an", illumination_params=ip)) + (["cameras_sphere.npz", "illumination_params", "refused"],)
 
 
+# --------------------------------------------------------------------------- item 6: EXIF orientation
+def _jpeg_with_orientation(bgr: np.ndarray, orientation: int, big_endian: bool = False) -> bytes:
+    """A JPEG whose APP1 Exif block holds only IFD0 with the Orientation tag (as a phone writes)."""
+    ok, buf = cv2.imencode(".jpg", bgr, [cv2.IMWRITE_JPEG_QUALITY, 100])
+    assert ok
+    e = ">" if big_endian else "<"
+    tiff = (b"MM" if big_endian else b"II") + struct.pack(e + "HI", 42, 8)
+    ifd = struct.pack(e + "H", 1) + struct.pack(e + "HHIHH", 0x0112, 3, 1, orientation, 0) + struct.pack(e + "I", 0)
+    payload = b"Exif\x00\x00" + tiff + ifd
+    data = buf.tobytes()
+    return data[:2] + b"\xff\xe1" + struct.pack(">H", len(payload) + 2) + payload + data[2:]
+
+
+def test_exif_orientation_is_ignored_with_a_warning(small_scene, tmp_path, capsys):
+    """A photo tagged "rotate 90" is read as stored (as the size check, the masks and the intrinsics
+    see it), and one warning line names the file."""
+    from fastneus.data import Scene
+    from fastneus.data.scene import exif_orientation
+
+    d = tmp_path / "s"
+    shutil.copytree(small_scene, d)
+    bgr = np.zeros((24, 24, 3), np.uint8)
+    bgr[:, :12] = (0, 0, 255)  # left half red, right half blue: a rotation moves them
+    bgr[:, 12:] = (255, 0, 0)
+    (d / "images" / "000.jpg").write_bytes(_jpeg_with_orientation(bgr, 6))
+    (d / "images" / "001.jpg").write_bytes(_jpeg_with_orientation(bgr, 1, big_endian=True))
+    data = json.loads((d / "scene.json").read_text())
+    data["frames"][0]["image"] = "images/000.jpg"
+    data["frames"][1]["image"] = "images/001.jpg"
+    (d / "scene.json").write_text(json.dumps(data))
+    capsys.readouterr()
+    scene = Scene.load(d)
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "000.jpg" in err[0] and "orientation 6" in err[0], err
+    stored = cv2.imread(str(d / "images" / "000.jpg"), cv2.IMREAD_COLOR | cv2.IMREAD_IGNORE_ORIENTATION)[:, :, ::-1]
+    np.testing.assert_array_equal(scene.image(0), stored)
+    assert scene.image(0)[12, 2, 0] > 200 and scene.image(0)[12, 21, 2] > 200  # red left, blue right
+    assert exif_orientation(d / "images" / "001.jpg") == 1
+    assert exif_orientation(d / "images" / "002.png") is None
+    assert exif_orientation(d / "scene.json") is None
+    Scene.load(d)  # warned once per file
+    assert capsys.readouterr().err == ""
+
+
 # --------------------------------------------------------------------------- the runner
 @pytest.mark.parametrize("name", sorted(CASES))
 def test_bad_input(name, bases, tmp_path, capsys):  # noqa: F811 - bases is the imported fixture

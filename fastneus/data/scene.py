@@ -29,6 +29,8 @@ from ..errors import FastneusError
 FORMAT = "fastneus-scene"
 VERSION = 1
 POSE_TOL = 1e-4  # tolerance of the rigidity check R^T R = I
+MAX_SIDE = 1 << 16  # image / projector width and height (JPEG's limit; no camera or projector is larger)
+MAX_PIXELS = 1 << 30  # OpenCV's CV_IO_MAX_IMAGE_PIXELS: imread refuses larger images
 
 
 # --------------------------------------------------------------------------- dataclasses
@@ -278,7 +280,10 @@ def image_info(path: str | os.PathLike) -> tuple[int, int, int, int] | None:
         return int(w), int(h), _PNG_CHANNELS.get(head[25], 0), bits
     import cv2
 
-    im = cv2.imread(path, cv2.IMREAD_UNCHANGED)
+    try:
+        im = cv2.imread(path, cv2.IMREAD_UNCHANGED)
+    except cv2.error:  # a header OpenCV refuses (e.g. more pixels than it decodes)
+        return None
     if im is None:
         return None
     return int(im.shape[1]), int(im.shape[0]), 1 if im.ndim == 2 else int(im.shape[2]), 8 * im.dtype.itemsize
@@ -315,14 +320,97 @@ def _check_image(root: Path, rel: str, size: tuple[int, int] | None, file, fld: 
     if bits not in depths:
         raise _err(f"{kind} {rel} is {bits}-bit; expected {' or '.join(map(str, depths))}-bit per channel",
                    file, fld)
+    if w * h > MAX_PIXELS:  # only a PNG header is read here; OpenCV refuses to decode more
+        raise _err(f"{kind} {rel} is {w}x{h}, more than the {MAX_PIXELS} pixels OpenCV decodes", file, fld)
+    warn_orientation(p)
+
+
+def _exif_orientation_tiff(tiff: bytes) -> int | None:
+    """The Orientation tag (0x0112) of IFD0 in a TIFF-structured EXIF block, None if absent or malformed."""
+    if len(tiff) < 8 or tiff[:2] not in (b"II", b"MM"):
+        return None
+    e = "<" if tiff[:2] == b"II" else ">"
+    ifd = struct.unpack(e + "I", tiff[4:8])[0]
+    if ifd + 2 > len(tiff):
+        return None
+    n = struct.unpack(e + "H", tiff[ifd:ifd + 2])[0]
+    for k in range(min(n, 512)):
+        at = ifd + 2 + 12 * k
+        if at + 12 > len(tiff):
+            return None
+        tag, typ = struct.unpack(e + "HH", tiff[at:at + 4])
+        if tag == 0x0112 and typ == 3:  # SHORT, stored in the first 2 bytes of the value field
+            return struct.unpack(e + "H", tiff[at + 8:at + 10])[0]
+    return None
+
+
+def exif_orientation(path: str | os.PathLike) -> int | None:
+    """The EXIF Orientation of a JPEG (APP1 ``Exif``) or PNG (``eXIf`` chunk), read from the
+    file's first 256 KB without decoding pixels; None when there is none."""
+    try:
+        with open(path, "rb") as f:
+            head = f.read(1 << 18)
+    except OSError:
+        return None
+    try:
+        if head[:2] == b"\xff\xd8":  # JPEG: walk the marker segments before the image data
+            at = 2
+            while at + 4 <= len(head) and head[at] == 0xFF:
+                marker, size = head[at + 1], struct.unpack(">H", head[at + 2:at + 4])[0]
+                if marker == 0xE1 and head[at + 4:at + 10] == b"Exif\x00\x00":
+                    return _exif_orientation_tiff(head[at + 10:at + 2 + size])
+                if marker in (0xD9, 0xDA) or size < 2:  # end of image / start of scan
+                    return None
+                at += 2 + size
+        elif head[:8] == b"\x89PNG\r\n\x1a\n":
+            at = 8
+            while at + 8 <= len(head):
+                size, kind = struct.unpack(">I4s", head[at:at + 8])
+                if kind == b"eXIf":
+                    return _exif_orientation_tiff(head[at + 8:at + 8 + size])
+                if kind in (b"IDAT", b"IEND"):
+                    return None
+                at += 12 + size
+    except struct.error:
+        return None
+    return None
+
+
+_ORIENTATION_WARNED: set[str] = set()
+
+
+def warn_orientation(path: str | os.PathLike) -> None:
+    """One stderr line (once per file) when an image carries an EXIF rotation/flip that fastneus ignores."""
+    import sys
+
+    o = exif_orientation(path)
+    if o not in (None, 1) and str(path) not in _ORIENTATION_WARNED:
+        _ORIENTATION_WARNED.add(str(path))
+        print(f"warning: {path}: EXIF orientation {o} ignored; fastneus uses the pixels as stored, which the "
+              "intrinsics and masks must describe (re-save the file without the tag if it is wrong)",
+              file=sys.stderr)
+
+
+def _imread(path: Path, flags: int, file, fld: str) -> np.ndarray:
+    """``cv2.imread`` with ``flags`` and the EXIF orientation ignored (pixels as stored, like the
+    size check and the masks), one-line errors; None never escapes."""
+    import cv2
+
+    if flags != cv2.IMREAD_UNCHANGED:  # IMREAD_UNCHANGED ignores the orientation already (and is -1)
+        flags |= cv2.IMREAD_IGNORE_ORIENTATION
+    try:
+        im = cv2.imread(str(path), flags)
+    except cv2.error as e:  # e.g. a header claiming more pixels than OpenCV decodes
+        raise _err(f"cannot read image {path}: {str(e).strip().splitlines()[-1][:200]}", file, fld) from None
+    if im is None:
+        raise _err(f"cannot read image {path}", file, fld)
+    return im
 
 
 def _read_rgb(path: Path, file, fld: str) -> np.ndarray:
     import cv2
 
-    im = cv2.imread(str(path), cv2.IMREAD_COLOR)
-    if im is None:
-        raise _err(f"cannot read image {path}", file, fld)
+    im = _imread(path, cv2.IMREAD_COLOR, file, fld)
     return np.ascontiguousarray(im[:, :, ::-1])
 
 
@@ -698,9 +786,7 @@ class Scene:
             return None
         import cv2
 
-        m = cv2.imread(str(self.path(f.mask)), cv2.IMREAD_UNCHANGED)
-        if m is None:
-            raise _err(f"cannot read mask {self.path(f.mask)}", self.root / "scene.json", f"frames[{i}].mask")
+        m = _imread(self.path(f.mask), cv2.IMREAD_UNCHANGED, self.root / "scene.json", f"frames[{i}].mask")
         if m.ndim == 3:
             m = m[:, :, 0]
         scale = 65535.0 if m.dtype == np.uint16 else 255.0
