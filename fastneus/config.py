@@ -276,6 +276,10 @@ def validate(cfg: Config, source: str = "config") -> None:
                             field="projector_blur")
     if not (0 < cfg.decay_to <= 1):
         raise FastneusError("must be in (0, 1]", file=source, field="decay_to")
+    if not 0.0 <= cfg.bright_fraction <= 1.0:  # a share of the rays
+        raise FastneusError(f"must be in [0, 1], got {cfg.bright_fraction!r}", file=source, field="bright_fraction")
+    if not 2 <= cfg.mesh_resolution <= 4096:  # the marching-cubes grid (export.mesh); found only after training
+        raise FastneusError(f"must be in 2..4096, got {cfg.mesh_resolution}", file=source, field="mesh_resolution")
 
 
 def load_config(config: str | None = None, overrides: list[str] | None = None,

@@ -18,9 +18,58 @@ from typing import Any, Callable, Iterator
 from fastneus.errors import FastneusError
 
 
+# --------------------------------------------------------------------------- no writes through symbolic links
+# output folders (absolute, as the user named them) below which every write refuses symbolic links
+_CONFINED: list[str] = []
+
+
+@contextlib.contextmanager
+def confined(root: str | os.PathLike) -> Iterator[Path]:
+    """While active, writes below ``root`` (:func:`atomic_write`, :func:`open_append`) refuse a
+    destination that is, or passes through, a symbolic link: a link planted in a run folder
+    (``renders`` -> elsewhere, ``log.jsonl`` -> a user's file) can never redirect a write.
+    ``root`` itself, the folder the user named, may be a link."""
+    r = os.path.abspath(root)
+    _CONFINED.append(r)
+    try:
+        yield Path(root)
+    finally:
+        _CONFINED.remove(r)
+
+
+def check_no_link(path: str | os.PathLike) -> None:
+    """Refuse ``path`` when it or a folder between a :func:`confined` root and it is a symbolic link.
+
+    Raises:
+        FastneusError: one line naming the link.
+    """
+    p = os.path.abspath(path)
+    for root in _CONFINED:
+        if p.startswith(root.rstrip(os.sep) + os.sep):
+            q = p
+            while q != root and len(q) > len(root):
+                if os.path.islink(q):
+                    raise FastneusError("is a symbolic link; fastneus never writes through a link inside its "
+                                        "output folder (remove the link)", file=q)
+                q = os.path.dirname(q)
+
+
+def open_append(path: str | os.PathLike):
+    """Open a text file for appending, never through a symbolic link (:func:`check_no_link`, O_NOFOLLOW)."""
+    check_no_link(path)
+    try:
+        fd = os.open(path, os.O_WRONLY | os.O_APPEND | os.O_CREAT | os.O_NOFOLLOW | os.O_CLOEXEC, 0o644)
+    except OSError as e:
+        if os.path.islink(path):
+            raise FastneusError("is a symbolic link; fastneus does not append through links", file=path) from None
+        raise FastneusError(f"cannot open for appending: {e.strerror}", file=path) from None
+    return os.fdopen(fd, "a")
+
+
 def atomic_write(path: str | os.PathLike, write: Callable[[str], None], suffix: str = "") -> None:
-    """Call ``write(tmp_path)`` then rename the temp file onto ``path``."""
+    """Call ``write(tmp_path)`` then rename the temp file onto ``path`` (never through a link, see :func:`confined`)."""
     path = Path(path)
+    check_no_link(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=suffix or path.suffix, dir=path.parent)
     os.close(fd)

@@ -131,6 +131,56 @@ def print_run_summary(metrics: dict, console) -> None:
     console.print(timing.table(tm), markup=False, highlight=False)
 
 
+def check_inputs(scene, frames: list[int]) -> None:
+    """Check what training and finish_run will read from ``scene`` that loading does not: focal
+    lengths in pixels, and the ground truth (per-frame depth, normals and pattern-free images of
+    ``frames``, the GT mesh). A bad file found after training would cost the run, and with
+    ``--overwrite`` the previous one.
+
+    Raises:
+        FastneusError: naming the scene file and field.
+    """
+    import numpy as np
+
+    file = Path(scene.root) / "scene.json"
+    if not file.is_file():
+        file = Path(scene.root)
+    for kind, devs in (("cameras", scene.cameras), ("projectors", scene.projectors)):
+        for did, d in devs.items():
+            for f, n in ((d.K[0, 0], d.width), (d.K[1, 1], d.height)):
+                # fx < 0.005 * width is a field of view over 179 degrees: not a pinhole in pixels
+                if getattr(d, "planes", None) is None and not f >= 0.005 * n:
+                    raise FastneusError(f"focal length {f:g} px is implausible for a {d.width}x{d.height} image "
+                                        "(field of view over 179 degrees); K must be in pixels", file=file,
+                                        field=f"{kind}.{did}.K")
+    for i in frames:
+        cam = scene.frame_camera(i)
+        hw = (cam.height, cam.width)
+        for key, read, shape in (("depth", scene.gt_depth, hw), ("normal", scene.gt_normal, hw + (3,)),
+                                 ("clean", scene.gt_clean, hw + (3,))):
+            a = read(i)
+            if a is None:
+                continue
+            if a.shape != shape:
+                raise FastneusError(f"has shape {a.shape}, expected {shape} (the frame's image size)", file=file,
+                                    field=f"frames[{i}].gt.{key}")
+            if key == "depth" and not (np.isfinite(a).all() and (a >= 0).all()):
+                raise FastneusError("depths must be finite and >= 0 (0 = background)", file=file,
+                                    field=f"frames[{i}].gt.depth")
+    if scene.gt_mesh:
+        import trimesh
+
+        path = scene.path(scene.gt_mesh)
+        try:
+            m = trimesh.load(path, force="mesh", process=False)
+            ok = isinstance(m, trimesh.Trimesh) and len(m.faces) > 0 and np.isfinite(m.vertices).all()
+            why = "it holds no triangles (or non-finite vertices)"
+        except Exception as e:  # noqa: BLE001 - trimesh raises many types for bad files
+            ok, why = False, f"{type(e).__name__}: {e}".splitlines()[0] if str(e) else type(e).__name__
+        if not ok:
+            raise FastneusError(f"cannot use the ground-truth mesh {path}: {why}", file=file, field="gt.mesh")
+
+
 def train_scene(scene, cfg: Config, out: Path, device: str, console=None, resume: bool = False,
                 finish: bool = True, overwrite: bool = False, clock=None) -> tuple[object, dict]:
     """Train on ``scene`` into run folder ``out``; then mesh/render/evaluate/report.
@@ -147,28 +197,59 @@ def train_scene(scene, cfg: Config, out: Path, device: str, console=None, resume
 
     clock = clock or timing.take_clock()
     with clock.phase("imports"):
+        from fastneus.io import confined
         from fastneus.train.checkpoint import CKPT_NAME, load_checkpoint, restore
         from fastneus.train.interrupt import stop_on_signal
-        from fastneus.train.runfolder import check_run_folder, clear_run_folder
+        from fastneus.train.runfolder import (PreviousRun, check_run_folder, mark_run, recover, remove_stale_temps,
+                                              repair_log, run_lock)
         from fastneus.train.trainer import Trainer
 
     out = Path(out)
-    check_run_folder(out, resume=resume, overwrite=overwrite)
-    if str(device).startswith("cuda"):
-        with clock.phase("cuda_init"):  # the CUDA context (torch's; Warp's driver init is in imports)
-            import torch
-
-            torch.empty(1, device=device)
-            torch.cuda.synchronize(device)
-    with clock.phase("setup"):
-        trainer = Trainer(scene, cfg, out, device, console)
-        trainer.clock = clock
+    # nothing written below `out` follows a symbolic link; one writer at a time
+    with confined(out), run_lock(out):
+        recover(out)  # a killed --overwrite: its previous run comes back (or goes, if the new one had a checkpoint)
+        check_run_folder(out, resume=resume, overwrite=overwrite)
+        remove_stale_temps(out)
         if resume:
-            if not (out / CKPT_NAME).is_file():
-                raise FastneusError("--resume given but the run folder has no checkpoint", file=str(out / CKPT_NAME))
-            restore(trainer, load_checkpoint(out, map_location=device), out / CKPT_NAME)
-        else:
-            clear_run_folder(out)  # inputs are valid by now: an earlier run is replaced, not mixed in
+            repair_log(out)
+        if str(device).startswith("cuda"):
+            with clock.phase("cuda_init"):  # the CUDA context (torch's; Warp's driver init is in imports)
+                import torch
+
+                torch.empty(1, device=device)
+                torch.cuda.synchronize(device)
+        with clock.phase("setup"):
+            trainer = Trainer(scene, cfg, out, device, console)
+            trainer.clock = clock
+            if finish:  # what finish_run reads, checked before the folder changes or training starts
+                check_inputs(scene, sorted(set(trainer.frames) | set(default_eval_frames(scene, trainer.frames))))
+            if resume:
+                if not (out / CKPT_NAME).is_file():
+                    raise FastneusError("--resume given but the run folder has no checkpoint",
+                                        file=str(out / CKPT_NAME))
+                restore(trainer, load_checkpoint(out, map_location=device), out / CKPT_NAME)
+            # inputs are valid by now: an earlier run is moved aside (not mixed in), and deleted only
+            # once this run has saved its first checkpoint
+            kept = {"prev": None if resume else PreviousRun.set_aside(out)}
+
+        def first_checkpoint() -> None:
+            trainer.on_saved = None
+            if kept["prev"] is not None:
+                kept["prev"].drop()
+                kept["prev"] = None
+        trainer.on_saved = first_checkpoint
+        try:
+            mark_run(out)
+            return _train_and_finish(trainer, scene, cfg, out, device, console, finish, clock, stop_on_signal)
+        except BaseException:
+            if kept["prev"] is not None:  # failed before any checkpoint: the previous run comes back
+                kept["prev"].restore()
+            raise
+
+
+def _train_and_finish(trainer, scene, cfg: Config, out: Path, device: str, console, finish: bool, clock,
+                      stop_on_signal) -> tuple[object, dict]:
+    """train_scene's part after the run folder is ready: run.json, training, then finish_run."""
     if console is not None:
         console.print(trainer.threads_note)
         console.print(trainer.masks_note)

@@ -134,10 +134,12 @@ class Ctx:
 
     # --- output folders with an earlier result
     def run_out(self) -> Path:
-        """A finished run's folder (the earlier result a failing train must not touch)."""
+        """A finished run's folder (the earlier result a failing train must not touch); fastneus's mark
+        says it is a run, so --overwrite may replace it once the inputs are valid."""
         out = self.tmp / "out_run"
         out.mkdir(exist_ok=True)
-        for name, text in (("metrics.json", '{"chamfer": 1}'), ("mesh.ply", "earlier mesh"), ("checkpoint.pt", "x")):
+        for name, text in (("metrics.json", '{"chamfer": 1}'), ("mesh.ply", "earlier mesh"), ("checkpoint.pt", "x"),
+                           (".fastneus-run.json", '{"written_by": "fastneus"}')):
             (out / name).write_text(text)
         return out
 

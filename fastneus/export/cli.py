@@ -6,7 +6,7 @@ from pathlib import Path
 
 from fastneus.cli import add_device_arg, resolve_device
 from fastneus.errors import FastneusError
-from fastneus.io import check_out_dir
+from fastneus.io import check_out_dir, confined
 
 
 def open_run(run: str, device: str, scene: str | None = None):
@@ -63,7 +63,8 @@ def _mesh(args) -> int:
     mesh = extract_mesh_arrays(tr.field, scene, args.resolution or tr.cfg.mesh_resolution, tr.device,
                                bound=tr.cfg.bound, allowed=tr.seen)
     out = Path(args.out) if args.out else Path(args.run) / "mesh.ply"
-    save_mesh(mesh, out)
+    with confined(out.parent):  # mesh.ply as a link into another folder is refused, not followed
+        save_mesh(mesh, out)
     print(f"{out}: {len(mesh.vertices)} vertices, {len(mesh.faces)} faces (world units, {scene.units})")
     return 0
 
@@ -77,7 +78,9 @@ def _render(args) -> int:
     scene, tr = open_run(args.run, device, args.scene)
     frames = _check_frames(args.frame or [0], scene)
     out = Path(args.out) if args.out else Path(args.run) / "renders"
-    paths = save_renders(render_frames(tr, frames), out)
+    renders = render_frames(tr, frames)
+    with confined(Path(args.run) if args.out is None else out):  # RUN/renders as a link is refused, not followed
+        paths = save_renders(renders, out)
     for i, p in paths.items():
         print(f"frame {i}: " + ", ".join(f"{k} {out / Path(v).name}" for k, v in p.items()))
     return 0
@@ -85,13 +88,18 @@ def _render(args) -> int:
 
 def _eval(args) -> int:
     from fastneus.pipeline import finish_run
+    from fastneus.train.runfolder import run_lock
 
     _check_resolution(args.resolution)
     device = resolve_device(args.device)
-    scene, tr = open_run(args.run, device, args.scene)
-    if args.frame:
-        _check_frames(args.frame, scene)  # before anything in the run folder is rewritten
-    metrics = finish_run(tr, eval_frames=args.frame, mesh_resolution=args.resolution)
+    if not Path(args.run).is_dir():
+        raise FastneusError("run folder not found", file=args.run)
+    # one writer at a time; nothing it writes in the run follows a symbolic link
+    with confined(args.run), run_lock(Path(args.run)):
+        scene, tr = open_run(args.run, device, args.scene)
+        if args.frame:
+            _check_frames(args.frame, scene)  # before anything in the run folder is rewritten
+        metrics = finish_run(tr, eval_frames=args.frame, mesh_resolution=args.resolution)
     print(json.dumps(metrics, indent=1))
     return 0
 

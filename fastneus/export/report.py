@@ -30,13 +30,36 @@ def _svg_curve(xs: list[float], ys: list[float], title: str, log: bool = False, 
             f'<text x="{w - 10}" y="{h - 8}" font-size="10" text-anchor="end">{x1:.0f}</text></svg>')
 
 
+def read_log(path: Path) -> list[dict]:
+    """The records of a run's ``log.jsonl`` that are whole; a line cut short (kill -9 or a full
+    disk mid-append) or not a training record is dropped with a one-line warning."""
+    import sys
+
+    keys = ("step", "loss", "psnr", "i_r", "i_b")
+    log, bad = [], 0
+    if not path.is_file():
+        return log
+    for line in path.read_text(errors="replace").splitlines():
+        if not line.strip():
+            continue
+        try:
+            r = json.loads(line)
+        except (ValueError, RecursionError):
+            r = None
+        if isinstance(r, dict) and all(isinstance(r.get(k), (int, float)) for k in keys):
+            log.append(r)
+        else:
+            bad += 1
+    if bad:
+        print(f"warning: {path}: dropped {bad} unreadable line{'s' * (bad > 1)} (a write cut short, e.g. by "
+              "kill -9 or a full disk)", file=sys.stderr)
+    return log
+
+
 def write_report(run: Path, metrics: dict, render_paths: dict[int, dict[str, str]], config: dict,
                  title: str = "fastneus run") -> Path:
     """Write ``run/report.html`` (self-contained apart from the PNGs in ``run/renders``)."""
-    log = []
-    lp = run / "log.jsonl"
-    if lp.is_file():
-        log = [json.loads(line) for line in lp.read_text().splitlines() if line.strip()]
+    log = read_log(run / "log.jsonl")
     steps = [r["step"] for r in log]
     curves = "".join([
         _svg_curve(steps, [r["loss"] for r in log], "training loss (log)", log=True),

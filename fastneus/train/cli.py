@@ -44,8 +44,17 @@ def _run(args, tag: str, default_preset: str, oneshot_frame: int | None = None) 
             raise FastneusError(f"frame {i} out of range 0..{len(scene.frames) - 1}", field="--frame")
         view = scene.frames[i].view
         base["frames"] = [j for j, f in enumerate(scene.frames) if f.view == view]
-    cfg = load_config(preset, list(args.overrides or []) + threads_override(args), base=base)
     out = Path(args.out) if args.out else _default_out(args.scene, tag)
+    if args.resume:  # the run's own config.yaml, with this command line's overrides on top
+        from fastneus.train.runfolder import check_run_folder, resume_config
+
+        check_run_folder(out, resume=True, overwrite=args.overwrite)  # --resume with --overwrite: refused first
+        if args.config:
+            raise FastneusError("--resume continues with the run's own config.yaml; give changes as key=value "
+                                "(e.g. steps=5000)", field="--config")
+        cfg = resume_config(out, list(args.overrides or []) + threads_override(args))
+    else:
+        cfg = load_config(preset, list(args.overrides or []) + threads_override(args), base=base)
     con = _console()
     con.print(f"[bold]fastneus {tag}[/bold]: scene {args.scene} ({len(scene.frames)} frames, "
               f"{len(cfg.frames) if cfg.frames else len(scene.frames)} used), preset {cfg.preset}, "

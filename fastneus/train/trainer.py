@@ -17,6 +17,7 @@ from fastneus.errors import FastneusError
 from fastneus.field.model import SDFField
 from fastneus.field.renderer import render_rays
 from fastneus.geometry_init import fit_batch
+from fastneus.io import open_append
 from fastneus.kernels.occupancy import OccupancyGrid
 from fastneus.train.checkpoint import CKPT_NAME, load_checkpoint, restore, save_checkpoint  # noqa: F401 (re-export)
 from fastneus.train.adam import Adam
@@ -117,6 +118,7 @@ class Trainer:
         self.field = SDFField(cfg, self.device)
         self.field.init_color_bias(self.bank.mean_rgb())
         self.grid = OccupancyGrid(cfg.occ_resolution, self.device)
+        self.on_saved = None  # called after each checkpoint write (pipeline.train_scene)
         self.seen = None
         if cfg.min_views > 0:
             from fastneus.visibility import seen_cells
@@ -300,7 +302,7 @@ class Trainer:
             self.elapsed += time.perf_counter() - t0
             if self.console is not None:
                 self.console.print(note)
-        logf = open(self.out / "log.jsonl", "a")
+        logf = open_append(self.out / "log.jsonl")  # never through a symbolic link
         last = {}
         samples_total, t_window, steps_window = 0, time.perf_counter(), 0
         timed = c.time_budget > 0
@@ -391,6 +393,8 @@ class Trainer:
         """Write the checkpoint atomically (temp file + rename): a crash keeps the previous one."""
         path = save_checkpoint(self.state(), self.out / CKPT_NAME)
         self.rig.write_json(self.out)
+        if self.on_saved is not None:  # e.g. drop the previous run that --overwrite kept aside
+            self.on_saved()
         return path
 
     def load_state(self, st: dict, with_optimizer: bool = True) -> None:
