@@ -197,6 +197,43 @@ def check_intrinsics(K: Any, file, fld: str) -> np.ndarray:
     return K
 
 
+def check_principal_point(K: np.ndarray, width: int, height: int, file, fld: str) -> None:
+    """Refuse a principal point more than one image size outside the image.
+
+    Lens shift puts it off-centre (projectors: often at or past the bottom edge), but never
+    that far: such a K is a typo or another unit, and every ray would miss the scene while
+    training "succeeds" (metrics turned infinite).
+    """
+    cx, cy = float(K[0, 2]), float(K[1, 2])
+    if not (-width <= cx <= 2 * width and -height <= cy <= 2 * height):
+        raise _err(f"principal point ({cx:.6g}, {cy:.6g}) lies far outside the {width}x{height} image "
+                   f"(allowed: cx in [-{width}, {2 * width}], cy in [-{height}, {2 * height}]); is K for "
+                   "another image size or in other units?", file, fld)
+
+
+BOUNDS_MAX_RATIO = 1e3  # bounds radius / farthest camera distance: beyond, the model's resolution is spread thin
+BOUNDS_MIN_PIXELS = 0.5  # the region of interest must span at least this many pixels in some image
+
+
+def check_bounds_scale(bounds: "Bounds", frames: list["Frame"], cameras: dict[str, "Camera"], file) -> None:
+    """Refuse bounds far out of scale with the cameras (usually other units than the poses).
+
+    The model lives in the unit sphere of the bounds: a radius 1000x the camera distances spreads its
+    resolution over empty space, one that spans under half a pixel in every image leaves nothing to
+    reconstruct; either way training would "succeed" on nothing.
+    """
+    r = float(bounds.radius)
+    dists = [float(np.linalg.norm(f.cam_to_world[:3, 3] - bounds.center)) for f in frames]
+    if max(dists) > 0 and r > BOUNDS_MAX_RATIO * max(dists):
+        raise _err(f"{r:.4g} is more than {BOUNDS_MAX_RATIO:g}x the farthest camera's distance from the centre "
+                   f"({max(dists):.4g}); are the bounds in other units than the poses?", file, "bounds.radius")
+    px = [r * float(min(cameras[f.camera].K[0, 0], cameras[f.camera].K[1, 1])) / d if d > r else math.inf
+          for f, d in zip(frames, dists)]
+    if max(px) < BOUNDS_MIN_PIXELS:
+        raise _err(f"{r:.4g} spans under {BOUNDS_MIN_PIXELS} pixel in every image (at most {max(px):.3g}); are the "
+                   "bounds in other units than the poses?", file, "bounds.radius")
+
+
 def check_faces_bounds(dev_to_world: np.ndarray, center, radius: float, what: str, file, fld: str) -> None:
     """Refuse a camera or projector that has the whole region of interest behind it.
 
@@ -211,9 +248,49 @@ def check_faces_bounds(dev_to_world: np.ndarray, center, radius: float, what: st
                    f"{what}->world), or are the bounds wrong?", file, fld)
 
 
-def _int(value: Any, file, fld: str, minimum: int = 1) -> int:
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or int(value) != value or value < minimum:
-        raise _err(f"expected an integer >= {minimum}, got {value!r}", file, fld)
+def _show(value: Any) -> str:
+    """``repr(value)`` cut to one short line (a 400-digit JSON integer would fill the screen)."""
+    r = repr(value)
+    return r if len(r) <= 40 and r.isprintable() else ascii(r[:32]) + "..."
+
+
+MAX_JSON_DEPTH = 64  # scene files nest 5 levels; deeper input would exhaust the recursion of later steps
+
+
+def load_json(file: str | os.PathLike) -> Any:
+    """Parse a JSON input file; every way it can be unreadable is one line naming it.
+
+    Raises:
+        FastneusError: unreadable, not UTF-8, invalid JSON, or nested deeper than :data:`MAX_JSON_DEPTH`.
+    """
+    try:
+        data = json.loads(Path(file).read_bytes().decode("utf-8-sig"))
+    except OSError as e:
+        raise _err(f"cannot read: {e.strerror or e}", file) from None
+    except UnicodeDecodeError as e:
+        raise _err(f"not UTF-8 text (byte {e.start}); JSON files are UTF-8", file) from None
+    except json.JSONDecodeError as e:
+        raise _err(f"invalid JSON at line {e.lineno} column {e.colno}: {e.msg}", file) from None
+    except RecursionError:
+        raise _err(f"invalid JSON: nested deeper than Python can parse (a scene nests {MAX_JSON_DEPTH} levels "
+                   "at most)", file) from None
+    stack = [(data, 0)]  # iterative: the check itself must not recurse
+    while stack:
+        v, depth = stack.pop()
+        if depth > MAX_JSON_DEPTH:
+            raise _err(f"nested more than {MAX_JSON_DEPTH} levels deep; not a scene file", file)
+        if isinstance(v, dict):
+            stack.extend((x, depth + 1) for x in v.values())
+        elif isinstance(v, list):
+            stack.extend((x, depth + 1) for x in v)
+    return data
+
+
+def _int(value: Any, file, fld: str, minimum: int = 1, maximum: int = 2 ** 31 - 1) -> int:
+    """An integer in [minimum, maximum] (a float with an integer value is accepted; NaN, inf are not)."""
+    if (isinstance(value, bool) or not isinstance(value, (int, float))
+            or (isinstance(value, float) and not value.is_integer()) or not minimum <= value <= maximum):
+        raise _err(f"expected an integer in {minimum}..{maximum}, got {_show(value)}", file, fld)
     return int(value)
 
 
@@ -455,12 +532,7 @@ class Scene:
         file = path / "scene.json" if path.is_dir() else path
         if not file.is_file():
             raise _err("scene.json not found", file)
-        try:
-            data = json.loads(file.read_text())
-        except (OSError, UnicodeDecodeError) as e:
-            raise _err(f"cannot read: {e}", file) from None
-        except json.JSONDecodeError as e:
-            raise _err(f"invalid JSON at line {e.lineno} column {e.colno}: {e.msg}", file) from None
+        data = load_json(file)
         return cls.from_dict(data, file.parent.resolve(), file=file)
 
     @classmethod
@@ -500,12 +572,14 @@ class Scene:
             dist = c.get("dist")
             cameras[cid] = Camera(
                 id=cid, K=check_intrinsics(_req(c, "K", file, p), file, f"{p}.K"),
-                width=_int(_req(c, "width", file, p), file, f"{p}.width"),
-                height=_int(_req(c, "height", file, p), file, f"{p}.height"),
+                width=_int(_req(c, "width", file, p), file, f"{p}.width", maximum=MAX_SIDE),
+                height=_int(_req(c, "height", file, p), file, f"{p}.height", maximum=MAX_SIDE),
                 dist=np.zeros(5) if dist is None else _matrix(dist, (5,), file, f"{p}.dist"),
                 port=parse_port(c.get("port"), file, f"{p}.port"))
         if not cameras:
             raise _err("no cameras", file, "cameras")
+        for cid, cam in cameras.items():
+            check_principal_point(cam.K, cam.width, cam.height, file, f"cameras.{cid}.K")
 
         projectors: dict[str, Projector] = {}
         for pid, pr in _dict(d.get("projectors", {}), file, "projectors").items():
@@ -526,11 +600,14 @@ class Scene:
                 continue
             projectors[pid] = Projector(
                 id=pid, K=check_intrinsics(_req(pr, "K", file, p), file, f"{p}.K"),
-                width=_int(_req(pr, "width", file, p), file, f"{p}.width"),
-                height=_int(_req(pr, "height", file, p), file, f"{p}.height"),
+                width=_int(_req(pr, "width", file, p), file, f"{p}.width", maximum=MAX_SIDE),
+                height=_int(_req(pr, "height", file, p), file, f"{p}.height", maximum=MAX_SIDE),
                 proj_to_cam=None if p2c is None else check_pose(p2c, file, f"{p}.proj_to_cam"),
                 port=parse_port(pr.get("port"), file, f"{p}.port"))
 
+        for pid, pj in projectors.items():
+            if pj.kind == "pattern":
+                check_principal_point(pj.K, pj.width, pj.height, file, f"projectors.{pid}.K")
         patterns: dict[str, Pattern] = {}
         pattern_sizes: dict[str, tuple[int, int]] = {}
         for qid, q in _dict(d.get("patterns", {}), file, "patterns").items():
@@ -547,7 +624,7 @@ class Scene:
         if not fl:
             raise _err("no frames: a scene needs at least one image", file, "frames")
         frames: list[Frame] = []
-        image_of: dict[str, int] = {}  # resolved image path -> first frame using it
+        image_of: dict = {}  # path, resolved path, (device, inode) -> first frame using that photo
         for i, f in enumerate(fl):
             p = f"frames[{i}]"
             f = _dict(f, file, p)
@@ -555,11 +632,18 @@ class Scene:
             if cam not in cameras:
                 raise _err(f"unknown camera id {cam!r}; known: {sorted(cameras)}", file, f"{p}.camera")
             image = _str(_req(f, "image", file, p), file, f"{p}.image")
-            key = os.path.normpath(root / image)
-            if key in image_of:
-                raise _err(f"duplicate frame: same image {image!r} as frames[{image_of[key]}] (each photo is one "
-                           "frame)", file, f"{p}.image")
-            image_of[key] = i
+            # the same photo by path, through a symbolic link or a hard link: one photo is one frame
+            keys: set = {os.path.normpath(root / image), os.path.realpath(root / image)}
+            try:
+                st = os.stat(root / image)
+                keys.add((st.st_dev, st.st_ino))
+            except OSError:  # missing: reported with the file checks
+                pass
+            hit = next((image_of[k] for k in keys if k in image_of), None)
+            if hit is not None:
+                raise _err(f"duplicate frame: image {image!r} is the same file as frames[{hit}].image "
+                           f"{fl[hit]['image']!r} (each photo is one frame)", file, f"{p}.image")
+            image_of.update(dict.fromkeys(keys, i))
             c2w = check_pose(_req(f, "cam_to_world", file, p), file, f"{p}.cam_to_world")
             view = _int(f.get("view", i), file, f"{p}.view", minimum=0)
             mask = f.get("mask")
@@ -618,6 +702,7 @@ class Scene:
                 check_faces_bounds(c2w @ p2c if p2c is not None else fp.proj_to_world, bounds.center, bounds.radius,
                                    "projector", file, f"projectors.{pid}.proj_to_cam" if p2c is not None
                                    else f"{p}.projectors.{pid}.proj_to_world")
+        check_bounds_scale(bounds, frames, cameras, file)
 
         il = _dict(d.get("illumination", {}), file, "illumination")
         known = il.get("known", False)
@@ -625,6 +710,10 @@ class Scene:
             raise _err("expected true or false", file, "illumination.known")
         illum = Illumination(**{k: _num(il[k], file, f"illumination.{k}") for k in ("i_r", "i_b", "ambient")
                                 if k in il}, known=known)
+        for k in ("i_r", "i_b", "ambient"):  # amounts of light: training starts log(i_r), log(i_b) from them
+            if getattr(illum, k) < 0:
+                raise _err(f"is an amount of light and must be >= 0, got {getattr(illum, k)!r}", file,
+                           f"illumination.{k}")
         gt_mesh = _dict(d.get("gt", {}) or {}, file, "gt").get("mesh")
         if gt_mesh is not None:
             gt_mesh = _str(gt_mesh, file, "gt.mesh")
