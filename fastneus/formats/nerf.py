@@ -265,12 +265,12 @@ def read_nerf(path: str | os.PathLike) -> Scene:
     if b is not None:
         if not isinstance(b, dict) or "center" not in b or "radius" not in b:
             raise FastneusError("expected {center: [x, y, z], radius: r}", file=file, field="bounds")
-        center, radius = np.asarray(b["center"], dtype=np.float64), b["radius"]
+        center, radius = b["center"], b["radius"]  # as given: Scene.from_dict checks them, naming this file
     else:
-        center = _look_point(c2ws)
+        center = _look_point(c2ws).tolist()
         radius = 0.5 * min(float(np.linalg.norm(T[:3, 3] - center)) for T in c2ws)
     data = {"format": FORMAT, "version": VERSION, "units": str(d.get("units", "m")), "name": root.name,
-            "bounds": {"center": np.asarray(center).tolist(), "radius": radius},
+            "bounds": {"center": center, "radius": radius},
             "cameras": cameras, "projectors": projectors, "patterns": patterns, "frames": frames,
             "meta": {"source_format": "nerf-transforms", "source": str(file)}}
     return Scene.from_dict(data, root, file=file)

@@ -24,6 +24,7 @@ projector distortion cannot be modelled and is dropped with a warning.
 from __future__ import annotations
 
 import json
+import re
 import shutil
 import warnings
 from pathlib import Path
@@ -31,8 +32,8 @@ from typing import Sequence
 
 import numpy as np
 
-from fastneus.data.scene import (FORMAT, VERSION, Camera, Projector, Scene, check_pose, image_size, planes_to_list,
-                                 rigid_inverse)
+from fastneus.data.scene import (FORMAT, VERSION, Camera, Projector, Scene, check_faces_bounds, check_pose, image_size,
+                                 planes_to_list, rigid_inverse)
 from fastneus.errors import FastneusError
 from fastneus.io import staged_output
 
@@ -45,6 +46,57 @@ LAYOUTS = {
 UNITS = {"mm": 1e-3, "cm": 1e-2, "m": 1.0}
 
 
+MAX_CALIB_BYTES = 16 << 20  # calibration files are a few KB; bounds the work and the nesting
+MAX_CALIB_DEPTH = 256  # real files nest 2-3 levels; OpenCV's parser recurses and crashes (SIGSEGV) near 50k
+
+
+def _nesting_depth(data: bytes) -> int:
+    """Upper bound of the YAML flow ([ {) / XML element nesting of a FileStorage file."""
+    depth = deepest = 0
+    for m in re.finditer(rb"[\[{]|[\]}]|<(/?)[^>?!]*?(/?)>", data):
+        tok = m.group(0)
+        if tok in (b"[", b"{") or (tok[:1] == b"<" and not m.group(1) and not m.group(2)):
+            depth += 1
+            deepest = max(deepest, depth)
+        elif tok in (b"]", b"}") or m.group(1):
+            depth = max(0, depth - 1)
+    return deepest
+
+
+def _cv_msg(e: BaseException) -> str:
+    """cv2's multi-line error as one line: keep "file(line): what", drop the C++ source path."""
+    lines = [ln.strip() for ln in str(e.__cause__ or e).strip().splitlines() if ln.strip()]
+    msg = lines[-1] if lines else type(e).__name__
+    if "Parsing error" in msg:  # "... error: (-212:Parsing error) f in function 'calib.yml(4): what'"
+        return msg.split(" in function '", 1)[-1].rstrip("'")
+    # "OpenCV(x) /path/file.cpp:159: error: (-215:Assertion failed) what in function 'f'"
+    return msg.split(" error: ", 1)[-1].split(" in function '", 1)[0]
+
+
+def _check_matrix_header(node, file: Path, key: str) -> bool:
+    """True for an ``opencv-matrix`` whose rows x cols x channels match its data; False for a
+    mapping without those fields.
+
+    OpenCV trusts the header when it reads the matrix: a negative ``cols`` corrupts the heap
+    (the process aborts later), a non-number allocates a garbage size.
+    """
+    parts = {k: node.getNode(k) for k in ("rows", "cols", "dt", "data")}
+    if all(n.isNone() for n in parts.values()):
+        return False
+    dt = parts["dt"].string() if parts["dt"].isString() else ""
+    form = re.fullmatch(r"([1-4]?)([a-zA-Z])", dt)
+    rows, cols = (int(parts[k].real()) if parts[k].isInt() else -1 for k in ("rows", "cols"))
+    if form is None or rows < 0 or cols < 0:
+        got = ", ".join(f"{k} {int(n.real()) if n.isInt() else n.string() if n.isString() else '?'!r}"
+                        for k, n in parts.items() if k != "data")
+        raise FastneusError(f"bad matrix header: rows and cols must be integers >= 0 and dt a type such as 'd'; "
+                            f"got {got}", file=file, field=key)
+    n = parts["data"].size() if parts["data"].isSeq() else 1
+    if rows * cols * int(form.group(1) or 1) != n:
+        raise FastneusError(f"matrix of {rows}x{cols} holds {n} values", file=file, field=key)
+    return True
+
+
 def _read_nodes(paths: Sequence[Path]) -> dict[str, tuple[Path, object]]:
     """Every top-level key of the FileStorage files -> (file, value: ndarray | float | str)."""
     import cv2
@@ -54,27 +106,39 @@ def _read_nodes(paths: Sequence[Path]) -> dict[str, tuple[Path, object]]:
         if not p.is_file():
             raise FastneusError("calibration file not found", file=p)
         try:
+            if p.stat().st_size > MAX_CALIB_BYTES:
+                raise FastneusError(f"larger than {MAX_CALIB_BYTES >> 20} MB; not a calibration file", file=p)
+            depth = _nesting_depth(p.read_bytes())
+        except OSError as e:
+            raise FastneusError(f"cannot read: {e.strerror}", file=p) from None
+        if depth > MAX_CALIB_DEPTH:
+            raise FastneusError(f"nested {depth} levels deep; a calibration file nests a few", file=p)
+        key = None
+        try:
             fs = cv2.FileStorage(str(p), cv2.FILE_STORAGE_READ)
+            if not fs.isOpened():
+                raise FastneusError("cannot open as OpenCV YAML/XML", file=p)
+            root = fs.root()
+            if not root.isMap():
+                raise FastneusError("expected a mapping of key: value at the top level", file=p)
+            for key in root.keys():
+                node = fs.getNode(key)
+                if node.isString():
+                    val: object = node.string()
+                elif node.isReal() or node.isInt():
+                    val = node.real()
+                elif node.isSeq():
+                    val = np.array([node.at(i).real() for i in range(node.size())], dtype=np.float64)
+                elif node.isMap() and _check_matrix_header(node, p, key):
+                    m = node.mat()
+                    val = None if m is None else np.asarray(m, dtype=np.float64)
+                else:  # empty, or a mapping that is not a matrix: reported if a needed key
+                    val = None
+                out[key] = (p, val)
+            fs.release()
         except (cv2.error, SystemError) as e:  # some parse errors surface as SystemError (cv2.error as cause)
-            msg = str(e.__cause__ or e).strip().splitlines()[-1]
-            msg = msg.split(" in function '", 1)[-1].rstrip("'")  # keep "file(line): what", drop the C++ source path
-            raise FastneusError(f"cannot parse as OpenCV YAML/XML: {msg}", file=p) from None
-        if not fs.isOpened():
-            raise FastneusError("cannot open as OpenCV YAML/XML", file=p)
-        root = fs.root()
-        for key in root.keys():
-            node = fs.getNode(key)
-            if node.isString():
-                val: object = node.string()
-            elif node.isReal() or node.isInt():
-                val = node.real()
-            elif node.isSeq():
-                val = np.array([node.at(i).real() for i in range(node.size())], dtype=np.float64)
-            else:
-                m = node.mat()
-                val = None if m is None else np.asarray(m, dtype=np.float64)
-            out[key] = (p, val)
-        fs.release()
+            raise FastneusError(f"cannot {'read' if key else 'parse'} as OpenCV YAML/XML: {_cv_msg(e)}", file=p,
+                                field=key) from None
     return out
 
 
@@ -224,7 +288,12 @@ def _axes_meeting_point(c2ws: list[np.ndarray]) -> np.ndarray:
         M = np.eye(3) - np.outer(d, d)
         A += M
         b += M @ T[:3, 3]
-    return np.linalg.lstsq(A, b, rcond=None)[0]
+    if not (np.all(np.isfinite(A)) and np.all(np.isfinite(b))):
+        return np.full(3, np.nan)  # callers refuse non-finite bounds, naming the poses
+    try:
+        return np.linalg.lstsq(A, b, rcond=None)[0]
+    except np.linalg.LinAlgError:
+        return np.full(3, np.nan)
 
 
 def _poses_from_scene_json(path: Path, n: int) -> tuple[list[np.ndarray], dict | None]:
@@ -318,19 +387,43 @@ def make_scene_from_calibration(calib, images: Sequence, patterns: Sequence, pos
             T = im.cam_to_world
             T[:3, 3] *= colmap_scale
             c2ws.append(T)
+        pose_of = [(poses_path / "images.txt", p.name) for p in images]  # (file, field) named in errors
         if pts is not None and len(pts) >= 10:
             pts = pts * colmap_scale
             center = np.median(pts, axis=0)
             radius = 1.2 * float(np.percentile(np.linalg.norm(pts - center, axis=1), 90))
+            bounds_of = (poses_path / "points3D.txt", None)
     else:
         c2ws, b = _poses_from_scene_json(poses_path, n)
+        sj = poses_path / "scene.json" if poses_path.is_dir() else poses_path
+        pose_of = [(sj, f"frames[{i}].cam_to_world") for i in range(n)]
         if isinstance(b, dict) and "center" in b and "radius" in b:
-            center, radius = np.asarray(b["center"], np.float64), float(b["radius"])
+            try:
+                center, radius = np.asarray(b["center"], np.float64), float(b["radius"])
+            except (TypeError, ValueError):
+                raise FastneusError("expected {center: [x, y, z], radius: r}", file=sj, field="bounds") from None
+            bounds_of = (sj, "bounds")
     if bounds is not None:
         center, radius = np.asarray(bounds[0], np.float64), float(bounds[1])
+        bounds_of = (None, "--bounds")
     if center is None:
         center = _axes_meeting_point(c2ws)
         radius = 0.5 * min(float(np.linalg.norm(T[:3, 3] - center)) for T in c2ws)
+        bounds_of = (pose_of[0][0], None)
+    # poses and bounds are checked here, naming the input they came from: the staged scene.json
+    # validates them again, but its errors would name a staging file that no longer exists
+    center = np.asarray(center, dtype=np.float64)
+    if center.shape != (3,) or not np.all(np.isfinite(center)) or not (np.isfinite(radius) and radius > 0):
+        derived = "" if bounds_of[1] else " (the region of interest derived from these poses; pass --bounds)"
+        raise FastneusError(f"bounds need a finite centre [x, y, z] and radius > 0, got centre "
+                            f"{center.tolist()}, radius {radius!r}{derived}", file=bounds_of[0], field=bounds_of[1])
+    calib_file = None if isinstance(calib, (tuple, list)) and calib and isinstance(calib[0], Camera) else \
+        Path(calib[0] if isinstance(calib, (tuple, list)) else calib)
+    for T, (f, fld) in zip(c2ws, pose_of):
+        check_faces_bounds(T, center, radius, "camera", f, fld)
+        if proj is not None:
+            check_faces_bounds(T @ proj.proj_to_cam, center, radius, "projector", calib_file or f,
+                               "R, T (camera -> projector)" if calib_file else fld)
 
     # every input file is checked before anything is copied, naming the file the user gave
     for i, p in enumerate(images):
