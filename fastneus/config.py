@@ -175,6 +175,67 @@ _POSITIVE = {"steps", "target_samples", "init_rays", "min_rays", "max_rays", "ma
              "lr_blur", "lr_medium", "medium_far", "prior_frac"}
 
 
+@dataclass(frozen=True)
+class _Range:
+    """Allowed values of a numeric key: ``lo`` <= v <= ``hi`` (``lo_open``: lo < v); None = unbounded."""
+
+    lo: float | None = None
+    hi: float | None = None
+    lo_open: bool = False
+    note: str = ""
+
+    def text(self) -> str:
+        g = lambda x: f"{x:.4g}" if isinstance(x, float) else str(x)  # noqa: E731
+        if self.hi is None:
+            return f"must be {'>' if self.lo_open else '>='} {g(self.lo)}"
+        return f"must be in {'(' if self.lo_open else '['}{g(self.lo)}, {g(self.hi)}]"
+
+
+_INT_MAX = 2 ** 31 - 1  # every integer key (but seed) fits int32: kernels, torch and numpy take it as one
+# inv_s = exp(10 v) is clamped to [1e-3, 1e6] (field.model.inv_s): outside, the clamp passes no gradient
+# and the NeuS variance is stuck there
+_VARIANCE = (math.log(1e-3) / 10, math.log(1e6) / 10)
+# every bounded key, in one table: validate() checks them all (plus the cross-key checks below it)
+_RANGES: dict[str, _Range] = {
+    **{k: _Range(0, None, lo_open=True) for k in _POSITIVE},
+    **{k: _Range(0.0, 1.0, note="a fraction of the run") for k in _FRACTIONS},
+    **{k: _Range(0.0, None, note="0 = off") for k in ("eikonal_weight", "mask_weight", "curvature_weight",
+                                                      "bg_weight", "prior_weight", "min_views")},
+    **{k: _Range(0.0, None, note="0 = frozen") for k in ("lr_variance", "lr_illum")},
+    "seed": _Range(0, 2 ** 32 - 1, note="numpy's seed range"),
+    "threads": _Range(0, 4096, note="0 = every CPU"),
+    "shots_per_ray": _Range(0, None, note="0 = all shots"),
+    "time_budget": _Range(0.0, None, note="seconds; 0 = steps set the length"),
+    "levels": _Range(1, 64, note="hash grid levels"),
+    "features": _Range(1, 8, note="the hash kernels' limit"),
+    "log2_table": _Range(1, 30, note="the hash kernels' limit; 2^30 entries per level"),
+    "c2f_start_levels": _Range(0, None, note="0 = all levels from the start"),
+    "sdf_layers": _Range(0, 16, note="hidden layers of the SDF network"),
+    "color_layers": _Range(0, 16, note="hidden layers of the colour network"),
+    "variance_init": _Range(*_VARIANCE, note="inv_s = exp(10 v) must lie in [1e-3, 1e6], where it learns"),
+    "inv_s_floor_start": _Range(0.0, 1e6, lo_open=True, note="inv_s is clamped to at most 1e6"),
+    "inv_s_floor_end": _Range(0.0, 1e6, note="0 = learned only; inv_s is clamped to at most 1e6"),
+    "init_radius": _Range(0.0, 1.0, lo_open=True, note="normalised units: the start sphere inside the bounds"),
+    "normal_eps_min": _Range(0.0, None, lo_open=True),
+    "background": _Range(0.0, 1.0, note="a colour value"),
+    "bg_tolerance": _Range(0.0, None),
+    "occ_threshold": _Range(0.0, None),
+    "decay_to": _Range(0.0, 1.0, lo_open=True, note="final lr factor"),
+    "bright_fraction": _Range(0.0, 1.0, note="a share of the rays"),
+    "mesh_resolution": _Range(2, 4096, note="the marching-cubes grid; found only after training otherwise"),
+}
+# words YAML 1.1 reads as booleans (masks: off -> False): a choice key with on/off takes them back
+_YAML_BOOL_CHOICE = {True: "on", False: "off"}
+
+
+def _shown(v: Any) -> str:
+    """A value for a one-line message: huge integers as their magnitude, long reprs cut."""
+    if isinstance(v, int) and not isinstance(v, bool) and abs(v) >= 10 ** 15:
+        return f"{'-' if v < 0 else ''}2^{abs(v).bit_length() - 1}+"
+    r = repr(v)
+    return r if len(r) <= 60 else r[:57] + "..."
+
+
 def preset_names() -> list[str]:
     """Names of the presets shipped in ``configs/``."""
     return sorted(p.name[:-5] for p in resources.files("fastneus.configs").iterdir() if p.name.endswith(".yaml"))
@@ -182,9 +243,15 @@ def preset_names() -> list[str]:
 
 def _read_yaml(path: Path | Any, label: str) -> dict[str, Any]:
     try:
-        data = yaml.safe_load(path.read_text())
+        data = yaml.safe_load(path.read_text(encoding="utf-8"))
     except (OSError, yaml.YAMLError) as e:
         raise FastneusError(f"cannot read config: {e}".splitlines()[0], file=label) from None
+    except UnicodeDecodeError as e:
+        raise FastneusError(f"cannot read config: not UTF-8 text (byte {e.start})", file=label) from None
+    except ValueError as e:  # e.g. an integer of more digits than Python converts
+        raise FastneusError(f"cannot read config: {e}".splitlines()[0][:200], file=label) from None
+    except RecursionError:
+        raise FastneusError("cannot read config: nested too deeply (a config is a flat mapping)", file=label) from None
     if data is None:
         return {}
     if not isinstance(data, dict):
@@ -206,7 +273,12 @@ def _coerce(name: str, value: Any, default: Any, source: str) -> Any:
                 value = [value]
             if not isinstance(value, (list, tuple)):
                 raise ValueError("expected a list such as [0, 4, 8]")
-            return [int(v) for v in value]
+            items = [int(v) if isinstance(v, float) and v.is_integer() else v for v in value]
+            if any(isinstance(v, bool) or not isinstance(v, int) or abs(v) > _INT_MAX for v in items):
+                raise ValueError("expected a list of integers such as [0, 4, 8]")
+            return items
+        if isinstance(value, bool) and name in _CHOICES and "on" in _CHOICES[name]:
+            return _YAML_BOOL_CHOICE[value]  # YAML 1.1: on/off/yes/no are booleans
         if isinstance(default, bool):
             if not isinstance(value, bool):
                 raise ValueError("expected true or false")
@@ -227,8 +299,9 @@ def _coerce(name: str, value: Any, default: Any, source: str) -> Any:
                 raise ValueError("expected a number")
             return float(value)
         return str(value)
-    except (ValueError, yaml.YAMLError) as e:
-        raise FastneusError(f"bad value {value!r}: {e}", file=source, field=name) from None
+    except (ValueError, TypeError, OverflowError, RecursionError, yaml.YAMLError) as e:
+        raise FastneusError(f"bad value {_shown(value)}: {str(e).splitlines()[0] if str(e) else type(e).__name__}",
+                            file=source, field=name) from None
 
 
 def apply(cfg: Config, updates: dict[str, Any], source: str) -> Config:
@@ -236,6 +309,8 @@ def apply(cfg: Config, updates: dict[str, Any], source: str) -> Config:
     known = {f.name for f in fields(cfg)}
     values = cfg.to_dict()
     for k, v in updates.items():
+        if not isinstance(k, str):  # a YAML key such as 1: or true:
+            raise FastneusError(f"config keys are names, got {type(k).__name__} {k!r}", file=source, field=repr(k))
         if k not in known:
             close = [n for n in known if n.startswith(k[:3])]
             hint = f" (did you mean {', '.join(sorted(close))}?)" if close else ""
@@ -254,32 +329,26 @@ def validate(cfg: Config, source: str = "config") -> None:
     for k, choices in _CHOICES.items():
         if getattr(cfg, k) not in choices:
             raise FastneusError(f"must be one of {', '.join(choices)}, got {getattr(cfg, k)!r}", file=source, field=k)
-    for k in _POSITIVE:
-        if not getattr(cfg, k) > 0:
-            raise FastneusError(f"must be > 0, got {getattr(cfg, k)!r}", file=source, field=k)
+    for f in fields(cfg):  # the table of ranges, then int32 for every other integer
+        v = getattr(cfg, f.name)
+        if isinstance(v, bool) or not isinstance(v, (int, float)):
+            continue
+        r = _RANGES.get(f.name, _Range(-_INT_MAX, _INT_MAX) if isinstance(v, int) else None)
+        if r is None:
+            continue
+        if (r.lo is not None and (v <= r.lo if r.lo_open else v < r.lo)) or (r.hi is not None and v > r.hi):
+            raise FastneusError(f"{r.text()}{f' ({r.note})' if r.note else ''}, got {_shown(v)}", file=source,
+                                field=f.name)
+        if isinstance(v, int) and r.hi is None and v > _INT_MAX:
+            raise FastneusError(f"must be at most {_INT_MAX}, got {_shown(v)}", file=source, field=f.name)
     if cfg.min_rays > cfg.max_rays:
         raise FastneusError("min_rays must not exceed max_rays", file=source, field="min_rays")
-    if cfg.shots_per_ray < 0:
-        raise FastneusError(f"must be >= 0 (0 = all shots), got {cfg.shots_per_ray}", file=source, field="shots_per_ray")
-    if cfg.threads < 0:
-        raise FastneusError(f"must be >= 0 (0 = every CPU), got {cfg.threads}", file=source, field="threads")
-    if cfg.prior_weight < 0:
-        raise FastneusError(f"must be >= 0 (0 = off), got {cfg.prior_weight}", file=source, field="prior_weight")
-    if cfg.min_views < 0:
-        raise FastneusError(f"must be >= 0, got {cfg.min_views}", file=source, field="min_views")
-    for k in _FRACTIONS:
-        if not 0.0 <= getattr(cfg, k) <= 1.0:
-            raise FastneusError(f"a fraction of the run must be in [0, 1], got {getattr(cfg, k)!r}",
-                                file=source, field=k)
+    if cfg.base_res > cfg.finest_res:
+        raise FastneusError(f"must not exceed finest_res ({cfg.finest_res}), got {cfg.base_res}", file=source,
+                            field="base_res")
     if cfg.projector_blur not in (0, 1, 3, 5, 7):
         raise FastneusError(f"must be 0 (off) or an odd kernel size 1..7, got {cfg.projector_blur}", file=source,
                             field="projector_blur")
-    if not (0 < cfg.decay_to <= 1):
-        raise FastneusError("must be in (0, 1]", file=source, field="decay_to")
-    if not 0.0 <= cfg.bright_fraction <= 1.0:  # a share of the rays
-        raise FastneusError(f"must be in [0, 1], got {cfg.bright_fraction!r}", file=source, field="bright_fraction")
-    if not 2 <= cfg.mesh_resolution <= 4096:  # the marching-cubes grid (export.mesh); found only after training
-        raise FastneusError(f"must be in 2..4096, got {cfg.mesh_resolution}", file=source, field="mesh_resolution")
 
 
 def load_config(config: str | None = None, overrides: list[str] | None = None,
@@ -330,13 +399,25 @@ def config_from_dict(d: dict[str, Any], source: str) -> Config:
     Step-based schedule keys of earlier versions become fractions of that run's ``steps``.
     """
     d = dict(d)
-    steps = max(1, int(d.get("steps", Config.steps) or 1))
+
+    def num(key: str, default: float) -> float:
+        """A finite number the conversion needs; a bad legacy key is named, others are left to apply()."""
+        v = d.get(key, default)
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or abs(v) > _INT_MAX:
+            if key in _LEGACY_STEPS or key == "c2f_steps_per_level":
+                raise FastneusError(f"expected a number of steps, got {v!r}"[:120], file=source, field=key)
+            return default
+        return float(v)
+
+    steps = max(1.0, num("steps", Config.steps))
     for old, new in _LEGACY_STEPS.items():
         if old in d:
-            v = d.pop(old)
-            d.setdefault(new, min(1.0, max(0.0, float(v) / steps)))
+            v = num(old, 0)
+            d.pop(old)
+            d.setdefault(new, min(1.0, max(0.0, v / steps)))
     if "c2f_steps_per_level" in d:
-        per = max(1, int(d.pop("c2f_steps_per_level")))
-        levels, start = int(d.get("levels", Config.levels)), int(d.get("c2f_start_levels", Config.c2f_start_levels))
-        d.setdefault("c2f_frac", min(1.0, max(0, levels - start) * per / steps))
+        per = max(1.0, num("c2f_steps_per_level", 1))
+        d.pop("c2f_steps_per_level")
+        levels, start = num("levels", Config.levels), num("c2f_start_levels", Config.c2f_start_levels)
+        d.setdefault("c2f_frac", min(1.0, max(0.0, levels - start) * per / steps))
     return apply(Config(), d, source)

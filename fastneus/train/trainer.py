@@ -72,8 +72,9 @@ def _configure_threads(requested: int) -> tuple[int, str]:
 
     try:
         return configure_threads(requested)
-    except ValueError as e:
-        raise FastneusError(str(e), field=THREADS_ENV) from None
+    except (ValueError, RuntimeError, OverflowError) as e:  # only the automatic count reads the variable
+        raise FastneusError(str(e).splitlines()[0] if str(e) else type(e).__name__,
+                            field="threads" if requested else THREADS_ENV) from None
 
 
 def _psnr(mse: float) -> float:
