@@ -55,7 +55,7 @@ def npz_array(npz, key: str, file: Path) -> np.ndarray:
     if key not in npz.files:
         raise FastneusError("missing key", file=file, field=key)
     try:
-        return np.asarray(npz[key])
+        a = np.asarray(npz[key])
     except ValueError as e:
         if "allow_pickle" in str(e):
             raise FastneusError("holds pickled Python objects, not numbers; fastneus does not unpickle "
@@ -64,6 +64,9 @@ def npz_array(npz, key: str, file: Path) -> np.ndarray:
     except Exception as e:  # noqa: BLE001 - truncated member, bad zip entry
         raise FastneusError(f"unreadable array: {type(e).__name__}: {e}".splitlines()[0], file=file,
                             field=key) from None
+    if np.iscomplexobj(a):  # a cast to float would drop the imaginary part silently
+        raise FastneusError(f"holds complex numbers ({a.dtype}); expected real numbers", file=file, field=key)
+    return a
 
 
 # --------------------------------------------------------------------------- restricted unpickler

@@ -8,8 +8,12 @@ torch's restricted unpickler. Every failure is one line naming the file and entr
 """
 from __future__ import annotations
 
+import errno
+import math
+import os
 import pickle
 import re
+import shutil
 from pathlib import Path
 from typing import Any
 
@@ -56,7 +60,25 @@ def plain(obj: Any, where: str = "state") -> Any:
 def save_checkpoint(state: dict, path: Path) -> Path:
     """Write ``plain(state)`` to ``path`` atomically (temp file + rename): a crash keeps the previous one."""
     data = plain(state)
-    atomic_write(path, lambda tmp: torch.save(data, tmp))
+
+    def write(tmp: str) -> None:
+        # through a Python file object: a full disk surfaces as OSError(ENOSPC) naming the file, not
+        # as torch's "[enforce fail at inline_container.cc] ... unexpected pos" RuntimeError
+        try:
+            with open(tmp, "wb") as fh:
+                torch.save(data, fh)
+                fh.flush()
+                os.fsync(fh.fileno())
+        except OSError as e:
+            raise OSError(e.errno, e.strerror or str(e), str(path)) from None
+        except RuntimeError as e:  # torch's writer failing some other way
+            if "enforce fail" in str(e) or "write" in str(e):
+                full = shutil.disk_usage(os.path.dirname(tmp) or ".").free < (64 << 20)
+                raise OSError(errno.ENOSPC if full else errno.EIO, os.strerror(errno.ENOSPC) if full else
+                              f"cannot write the checkpoint ({str(e).splitlines()[0][:120]})", str(path)) from None
+            raise
+
+    atomic_write(path, write)
     return Path(path)
 
 
@@ -89,7 +111,27 @@ def load_checkpoint(run: Path, map_location="cpu") -> dict:
         raise FastneusError(f"expected a step count >= 0, got {st['step']!r}", file=str(path), field="step")
     if not isinstance(st["config"], dict):
         raise FastneusError("expected a mapping of config keys", file=str(path), field="config")
+    bad = _first_non_finite(st)
+    if bad is not None:  # NaN weights would mesh to nothing and "succeed"
+        raise FastneusError("holds non-finite values (NaN/inf): the training that wrote it diverged, or the file "
+                            "was altered; resume from an earlier copy or train again", file=str(path), field=bad)
     return st
+
+
+def _first_non_finite(obj: Any, where: str = "") -> str | None:
+    """Dotted name of the first floating-point tensor or number holding NaN/inf in a checkpoint entry."""
+    if isinstance(obj, torch.Tensor):
+        return where if obj.is_floating_point() and not bool(torch.isfinite(obj).all()) else None
+    if isinstance(obj, float):
+        return None if math.isfinite(obj) else where
+    items = obj.items() if isinstance(obj, dict) else enumerate(obj) if isinstance(obj, (list, tuple)) else ()
+    for k, v in items:
+        if where == "" and k == "config":  # a config's floats are checked, by key, when it is applied
+            continue
+        hit = _first_non_finite(v, f"{where}.{k}" if where else str(k))
+        if hit is not None:
+            return hit
+    return None
 
 
 def restore(trainer, st: dict, path: Path, with_optimizer: bool = True) -> None:
