@@ -50,7 +50,7 @@ from typing import Any
 
 import numpy as np
 
-from fastneus.data.scene import FORMAT, VERSION, Scene, image_size, parse_port, port_to_dict
+from fastneus.data.scene import FORMAT, MAX_SIDE, VERSION, Scene, image_size, load_json, parse_port, port_to_dict
 from fastneus.errors import FastneusError
 
 NAME = "transforms.json"
@@ -109,8 +109,10 @@ def _intrinsics(d: dict, shared: dict, file, fld: str, size_from=None) -> tuple[
     if w is None or h is None:
         raise FastneusError("missing w/h (image size)", file=file, field=f"{fld}.w")
     for k, v in (("w", w), ("h", h)):
-        if isinstance(v, bool) or not isinstance(v, (int, float)) or v < 1 or int(v) != v:
-            raise FastneusError(f"expected a positive integer, got {v!r}", file=file, field=f"{fld}.{k}")
+        if (isinstance(v, bool) or not isinstance(v, (int, float)) or not 1 <= v <= MAX_SIDE
+                or (isinstance(v, float) and not v.is_integer())):  # NaN and inf fail the range test
+            raise FastneusError(f"expected an integer in 1..{MAX_SIDE}, got {v!r}"[:120], file=file,
+                                field=f"{fld}.{k}")
     w, h = int(w), int(h)
 
     def where(k):
@@ -172,10 +174,7 @@ def read_nerf(path: str | os.PathLike) -> Scene:
     if not file.is_file():
         raise FastneusError("transforms.json not found", file=file)
     root = file.parent.resolve()
-    try:
-        d = json.loads(file.read_text())
-    except json.JSONDecodeError as e:
-        raise FastneusError(f"invalid JSON at line {e.lineno} column {e.colno}: {e.msg}", file=file) from None
+    d = load_json(file)  # unreadable, not UTF-8, invalid or absurdly nested: one line naming the file
     if not isinstance(d, dict):
         raise FastneusError("expected a JSON object", file=file)
     frames_in = d.get("frames")
