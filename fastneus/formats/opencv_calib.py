@@ -23,7 +23,7 @@ projector distortion cannot be modelled and is dropped with a warning.
 """
 from __future__ import annotations
 
-import json
+import math
 import re
 import shutil
 import warnings
@@ -32,8 +32,8 @@ from typing import Sequence
 
 import numpy as np
 
-from fastneus.data.scene import (FORMAT, VERSION, Camera, Projector, Scene, check_faces_bounds, check_pose, image_size,
-                                 planes_to_list, rigid_inverse)
+from fastneus.data.scene import (FORMAT, MAX_SIDE, VERSION, Camera, Projector, Scene, check_faces_bounds, check_pose,
+                                 image_size, load_json, planes_to_list, rigid_inverse)
 from fastneus.errors import FastneusError
 from fastneus.io import staged_output
 
@@ -168,18 +168,29 @@ def _dist5(nodes, key: str) -> np.ndarray:
 
 
 def _size(nodes, pairs, vecs, rows_cols) -> tuple[int, int] | None:
+    def dim(key: str, v) -> int:
+        """A size in pixels from the file; NaN, inf, text or absurd values name the file and key."""
+        a = np.asarray(v, dtype=object).reshape(-1)
+        try:
+            x = float(a[0]) if a.size else math.nan
+        except (TypeError, ValueError):
+            x = math.nan
+        if not (math.isfinite(x) and 1 <= round(x) <= MAX_SIDE):
+            raise FastneusError(f"expected a size in pixels (1..{MAX_SIDE}), got {str(a[0]) if a.size else repr(v)}"[:120],
+                                file=nodes[key][0], field=key)
+        return int(round(x))
+
     for kw, kh in pairs:
         if kw in nodes and kh in nodes:
-            return int(round(float(np.asarray(nodes[kw][1]).reshape(-1)[0]))), \
-                int(round(float(np.asarray(nodes[kh][1]).reshape(-1)[0])))
+            return dim(kw, nodes[kw][1]), dim(kh, nodes[kh][1])
     for k in vecs:  # [width, height]
         if k in nodes and isinstance(nodes[k][1], np.ndarray) and nodes[k][1].size == 2:
             w, h = nodes[k][1].reshape(-1)
-            return int(w), int(h)
+            return dim(k, w), dim(k, h)
     for k in rows_cols:  # numpy shape order: [rows, cols]
         if k in nodes and isinstance(nodes[k][1], np.ndarray) and nodes[k][1].size in (2, 3):
             h, w = nodes[k][1].reshape(-1)[:2]
-            return int(w), int(h)
+            return dim(k, w), dim(k, h)
     return None
 
 
@@ -298,10 +309,7 @@ def _axes_meeting_point(c2ws: list[np.ndarray]) -> np.ndarray:
 
 def _poses_from_scene_json(path: Path, n: int) -> tuple[list[np.ndarray], dict | None]:
     file = path / "scene.json" if path.is_dir() else path
-    try:
-        d = json.loads(file.read_text())
-    except (OSError, ValueError) as e:
-        raise FastneusError(f"cannot read poses: {e}", file=file) from None
+    d = load_json(file)  # unreadable, not UTF-8, invalid or absurdly nested: one line naming the file
     frames = d.get("frames") if isinstance(d, dict) else None
     if not isinstance(frames, list):
         raise FastneusError("expected a scene.json with a frames list", file=file, field="frames")
