@@ -7,6 +7,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import os
+import re
 from dataclasses import dataclass, field, fields
 from importlib import resources
 from pathlib import Path
@@ -241,9 +242,21 @@ def preset_names() -> list[str]:
     return sorted(p.name[:-5] for p in resources.files("fastneus.configs").iterdir() if p.name.endswith(".yaml"))
 
 
+def _flow_depth(text: str) -> int:
+    """Deepest nesting of YAML flow brackets ([ {) in ``text`` (an upper bound: quotes are not parsed)."""
+    depth = deepest = 0
+    for c in re.findall(r"[\[\]{}]", text):
+        depth = depth + 1 if c in "[{" else max(0, depth - 1)
+        deepest = max(deepest, depth)
+    return deepest
+
+
 def _read_yaml(path: Path | Any, label: str) -> dict[str, Any]:
     try:
-        data = yaml.safe_load(path.read_text(encoding="utf-8"))
+        text = path.read_text(encoding="utf-8")
+        if _flow_depth(text) > 64:  # PyYAML recurses per level: 100k brackets take seconds to fail
+            raise RecursionError
+        data = yaml.safe_load(text)
     except (OSError, yaml.YAMLError) as e:
         raise FastneusError(f"cannot read config: {e}".splitlines()[0], file=label) from None
     except UnicodeDecodeError as e:
@@ -314,7 +327,8 @@ def apply(cfg: Config, updates: dict[str, Any], source: str) -> Config:
         if k not in known:
             close = [n for n in known if n.startswith(k[:3])]
             hint = f" (did you mean {', '.join(sorted(close))}?)" if close else ""
-            raise FastneusError(f"unknown config key{hint}", file=source, field=k)
+            raise FastneusError(f"unknown config key{hint}", file=source,
+                                field=k if k.isprintable() else repr(k))  # repr: the message stays one line
         values[k] = _coerce(k, v, getattr(Config(), k), source)
     out = Config(**values)
     validate(out, source)

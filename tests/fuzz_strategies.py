@@ -129,6 +129,22 @@ def _retype(v: Any) -> Any:
     return {}
 
 
+# plausible sub-trees a mutation may graft into an object (key, value): they reach the code
+# paths the base file does not use (ports, laser projectors, free projectors, ground truth...)
+_PORT = {"normal": [0.0, 0.0, 1.0], "distance": 0.05, "thickness": 0.01, "n_air": 1.0, "n_glass": 1.5,
+         "n_water": 1.333}
+_PLANES = [{"normal": [1.0, 0.0, 0.0], "offset": 0.0, "colour": [1.0, 0.0, 0.0], "width": 0.002, "fan_deg": 60.0}]
+GRAFTS = [("port", _PORT), ("port", {**_PORT, "normal": [0.0, 0.0, -1.0]}), ("kind", "laser"), ("planes", _PLANES),
+          ("laser0", {"kind": "laser", "proj_to_cam": np.eye(4).tolist(), "planes": _PLANES}),
+          ("proj_to_cam", None), ("proj_to_world", np.eye(4).tolist()), ("on", False), ("pattern", None),
+          ("gt", {"depth": "gt/000_depth.npy"}), ("gt", {"mesh": "scene.json"}), ("mask", "scene.json"),
+          ("illumination", {"i_r": 0.4, "i_b": 0.1, "ambient": 1.0, "known": True}), ("dist", [0.1, 0, 0, 0, 0]),
+          ("view", 0), ("camera_model", "OPENCV_FISHEYE"), ("k4", 0.1), ("camera_angle_x", 0.8),
+          ("camera_angle_y", 3.5), ("mask_path", "images/000.png"), ("transform_matrix", np.eye(4).tolist()),
+          ("projectors", {"proj9": {"pattern": None}}), ("bounds", {"center": [0, 0, 0], "radius": 1e-300}),
+          ("units", "mm"), ("meta", {"x": [1]})]
+
+
 @st.composite
 def mutate_tree(draw, base: Any, max_ops: int = 3) -> tuple[Any, list[str]]:
     """A deep copy of ``base`` (parsed JSON/YAML) with 1..max_ops random structural edits."""
@@ -138,10 +154,14 @@ def mutate_tree(draw, base: Any, max_ops: int = 3) -> tuple[Any, list[str]]:
         paths = _nodes(doc)
         path = draw(st.sampled_from(sorted(paths, key=lambda p: (len(p), repr(p)))))
         op = draw(st.sampled_from(["delete", "replace", "replace", "replace", "rename", "duplicate", "wrap",
-                                   "retype", "numeric"]))
+                                   "retype", "numeric", "graft", "graft"]))
         node = _get(doc, path)
         parent = _get(doc, path[:-1]) if path else None
-        if op == "delete" and path:
+        if op == "graft" and isinstance(node, dict):
+            k, v = draw(st.sampled_from(GRAFTS))
+            node[k] = copy.deepcopy(v)
+            path = path + (k,)
+        elif op == "delete" and path:
             del parent[path[-1]]
         elif op == "rename" and isinstance(parent, dict):
             new = draw(odd_keys | st.sampled_from([k for k in parent if isinstance(k, str)] or ["x"]))

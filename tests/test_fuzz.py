@@ -37,9 +37,9 @@ def fuzz(small_scene, tmp_path_factory):
     return f
 
 
-# root causes listed in issue 20 item 9 (RecursionError, UnicodeDecodeError, int() of infinity, YAML integer
-# keys), fixed alongside: xfail until they land
-PENDING = {"nerf", "config"}
+# root causes listed in issue 20 item 9 (RecursionError, UnicodeDecodeError, int() of infinity in
+# transforms.json), fixed alongside: xfail until they land (scripts/fuzz.py --target nerf finds them)
+PENDING = {"nerf"}
 
 
 @pytest.mark.parametrize("target", [pytest.param(t, marks=pytest.mark.xfail(reason="issue 20 item 9 pending"))
@@ -171,3 +171,30 @@ def test_look_point_of_degenerate_poses_is_nan():
     T = np.eye(4)
     T[:3, :3] = np.nan
     assert np.all(np.isnan(_axes_meeting_point([T, np.eye(4)])))
+
+
+@pytest.mark.parametrize("key", ["line\nbreak", "a\rb"])
+def test_unknown_config_key_with_line_break_is_one_line(fuzz, tmp_path, key):
+    """An unknown key holding a line break was printed as is, splitting the error over two lines."""
+    msg = fz.check_case(fuzz, fz.Case("overrides", items=[f"{key}=1"]))
+    assert "unknown config key" in msg and repr(key) in msg
+    cfg = tmp_path / "c.yaml"
+    cfg.write_text(json.dumps({key: 1}))  # JSON is YAML
+    msg = fz.check_case(fuzz, fz.Case("config", {"config.yaml": cfg.read_bytes()}))
+    assert "unknown config key" in msg and repr(key) in msg
+
+
+def test_deep_config_is_refused_before_yaml_parses_it(tmp_path, monkeypatch):
+    """PyYAML recursed through 100k brackets for seconds before its RecursionError; the depth is now
+    checked first, so the parser never sees such a file."""
+    import yaml
+
+    from fastneus.config import load_config
+
+    cfg = tmp_path / "deep.yaml"
+    cfg.write_text("steps: " + "[" * 100_000 + "]" * 100_000 + "\n")
+    real = yaml.safe_load
+    monkeypatch.setattr(yaml, "safe_load", lambda t: real(t) if len(t) < 10_000 else pytest.fail("parsed"))
+    with pytest.raises(FastneusError) as e:
+        load_config(str(cfg))
+    assert str(cfg) in str(e.value) and "nested too deeply" in str(e.value)
