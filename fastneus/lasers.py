@@ -143,13 +143,17 @@ def read_laser_planes(path, units: str = "mm") -> dict[str, Projector]:
     if not path.is_file():
         raise FastneusError("laser plane file not found", file=path)
     try:
-        d = yaml.safe_load(path.read_text())  # YAML is a superset of JSON
-    except (OSError, yaml.YAMLError) as e:
-        raise FastneusError(f"cannot read: {str(e).splitlines()[0]}", file=path) from None
+        d = yaml.safe_load(path.read_text(encoding="utf-8"))  # YAML is a superset of JSON
+    except UnicodeDecodeError as e:
+        raise FastneusError(f"cannot read: not UTF-8 text (byte {e.start})", file=path) from None
+    except (OSError, ValueError, yaml.YAMLError) as e:
+        raise FastneusError(f"cannot read: {str(e).splitlines()[0][:200]}", file=path) from None
+    except RecursionError:
+        raise FastneusError("cannot read: nested too deeply", file=path) from None
     if not isinstance(d, dict) or not isinstance(d.get("lasers"), dict) or not d["lasers"]:
         raise FastneusError("expected a mapping with a non-empty 'lasers' mapping", file=path, field="lasers")
     u = d.get("units", units)
-    if u not in UNITS:
+    if not isinstance(u, str) or u not in UNITS:
         raise FastneusError(f"unknown units {u!r}; use mm, cm or m", file=path, field="units")
     s = UNITS[u]
     out = {}

@@ -375,6 +375,11 @@ def _write_activeneus(scene: Scene, out: Path, downscale: int) -> None:
     if int(downscale) != downscale or downscale < 1:
         raise FastneusError(f"downscale must be an integer >= 1, got {downscale!r}", field="downscale")
     downscale = int(downscale)
+    small = [c for c in scene.cameras.values() if min(c.width, c.height) < downscale]
+    if small:  # cv2.resize would fail on a 0-pixel image half-way through the copy
+        c = small[0]
+        raise FastneusError(f"{downscale} shrinks camera {c.id}'s {c.width}x{c.height} images to nothing (at most "
+                            f"{min(c.width, c.height)})", field="downscale")
     free = [p.id for p in scene.projectors.values() if p.proj_to_cam is None]
     if free:
         raise FastneusError(f"the ActiveNeuS format needs projectors rigidly attached to the camera; "

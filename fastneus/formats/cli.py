@@ -1,6 +1,7 @@
 """Verbs ``convert`` (between scene formats) and ``import-calib`` (procam calibration -> scene)."""
 from __future__ import annotations
 
+import math
 import os
 import shutil
 import warnings
@@ -73,6 +74,11 @@ def _convert(args) -> int:
     if args.downscale < 1:
         raise FastneusError(f"must be an integer >= 1, got {args.downscale}", field="--downscale")
     scene = load_scene(args.scene)
+    small = [c for c in scene.cameras.values() if min(c.width, c.height) < args.downscale]
+    if args.to == "activeneus" and small:
+        c = small[0]
+        raise FastneusError(f"{args.downscale} shrinks camera {c.id}'s {c.width}x{c.height} images to nothing "
+                            f"(at most {min(c.width, c.height)})", field="--downscale")
     if Path(args.out).resolve() == Path(scene.root).resolve():
         raise FastneusError("output folder is the input folder; choose another --out", file=args.out, field="--out")
     # each writer builds aside and swaps in at the end (fastneus.io.staged_output): an unreadable image
@@ -122,6 +128,9 @@ def _import_calib(args) -> int:
             raise FastneusError(f"expected cx,cy,cz,radius with radius > 0, got {args.bounds!r}",
                                 field="--bounds") from None
         bounds = (v[:3], v[3])
+    if not (math.isfinite(args.colmap_scale) and args.colmap_scale > 0):  # nan passes "<= 0"
+        raise FastneusError(f"must be a finite number > 0 (metres per COLMAP unit), got {args.colmap_scale}",
+                            field="--colmap-scale")
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         scene = make_scene_from_calibration(

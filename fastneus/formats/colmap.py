@@ -90,8 +90,9 @@ def read_images_txt(path: str | os.PathLike) -> dict[str, ColmapImage]:
             iid, cid, name = int(t[0]), int(t[8]), " ".join(t[9:])
         except (IndexError, ValueError):
             raise FastneusError(f"cannot parse image line {ln!r}", file=path) from None
-        if not (np.all(np.isfinite(q)) and np.all(np.isfinite(tv))) or np.linalg.norm(q) == 0 or not name:
-            raise FastneusError(f"bad pose on image line {ln!r}", file=path, field=name or str(iid))
+        if not (np.all(np.isfinite(q)) and np.all(np.isfinite(tv))) or not np.any(q) or not name:
+            raise FastneusError(f"bad pose on image line {ln!r}"[:200], file=path, field=name or str(iid))
+        q = q / np.abs(q).max()  # scaled first: |q| of 1e200 components overflows to inf (a NaN rotation)
         if name in out:
             raise FastneusError(f"duplicate image {name!r} (image ids {out[name].id} and {iid})", file=path,
                                 field=name)

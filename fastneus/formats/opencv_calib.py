@@ -32,8 +32,8 @@ from typing import Sequence
 
 import numpy as np
 
-from fastneus.data.scene import (FORMAT, MAX_SIDE, VERSION, Camera, Projector, Scene, check_faces_bounds, check_pose,
-                                 image_size, load_json, planes_to_list, rigid_inverse)
+from fastneus.data.scene import (FORMAT, MAX_SIDE, VERSION, Camera, Projector, Scene, check_bounds_scale,
+                                 check_faces_bounds, check_pose, check_principal_point, image_size, load_json, planes_to_list, rigid_inverse)
 from fastneus.errors import FastneusError
 from fastneus.io import staged_output
 
@@ -203,9 +203,12 @@ def _parse_wh(v, what: str) -> tuple[int, int] | None:
         except ValueError:
             raise FastneusError(f"expected WIDTHxHEIGHT, got {v!r}", field=what) from None
     else:
-        w, h = (int(x) for x in v)
-    if w < 1 or h < 1:
-        raise FastneusError(f"sizes must be positive, got {w}x{h}", field=what)
+        try:
+            w, h = (int(x) for x in v)
+        except (TypeError, ValueError, OverflowError):
+            raise FastneusError(f"expected (width, height), got {v!r}"[:120], field=what) from None
+    if not (1 <= w <= MAX_SIDE and 1 <= h <= MAX_SIDE):
+        raise FastneusError(f"sizes must be in 1..{MAX_SIDE}, got {w}x{h}", field=what)
     return w, h
 
 
@@ -263,7 +266,9 @@ def read_procam_calibration(path, proj_size=None, units: str = "mm", cam_size=No
                    ["cam_size", "image_size", "imageSize"], ["img_shape", "cam_shape"]) or _parse_wh(cam_size, "--cam-size")
         if cs is None:
             raise FastneusError("camera image size not in the file; give images", file=file0)
-        return Camera(id="cam0", K=K_of(ck), width=cs[0], height=cs[1], dist=_dist5(nodes, cd)), None
+        cam = Camera(id="cam0", K=K_of(ck), width=cs[0], height=cs[1], dist=_dist5(nodes, cd))
+        check_principal_point(cam.K, cam.width, cam.height, nodes[ck][0], ck)
+        return cam, None
     Kc, Kp = K_of(ck), K_of(pk)
     dc, dp = _dist5(nodes, cd), _dist5(nodes, pd)
     R = _array(nodes, rk, [(3, 3)])
@@ -286,6 +291,8 @@ def read_procam_calibration(path, proj_size=None, units: str = "mm", cam_size=No
                             "pass --proj-size WxH", file=file0)
     cam = Camera(id="cam0", K=Kc, width=cs[0], height=cs[1], dist=dc)
     proj = Projector(id="proj0", K=Kp, width=ps[0], height=ps[1], proj_to_cam=rigid_inverse(cam_to_proj))
+    check_principal_point(cam.K, cam.width, cam.height, nodes[ck][0], ck)  # here, not in the staged scene.json
+    check_principal_point(proj.K, proj.width, proj.height, nodes[pk][0], pk)
     return cam, proj
 
 
@@ -367,6 +374,11 @@ def make_scene_from_calibration(calib, images: Sequence, patterns: Sequence, pos
     wh0 = image_size(images[0])
     if wh0 is None:
         raise FastneusError("cannot read image", file=images[0], field="--images")
+    for f, what in [(images[0], "--images")] + ([(pats[0], "--patterns")] if pats else []):
+        wh = image_size(f) if f.is_file() else None
+        if wh is not None and max(wh) > MAX_SIDE:  # a PNG header is read, not the pixels: it may claim anything
+            raise FastneusError(f"image is {wh[0]}x{wh[1]}, more than the {MAX_SIDE} pixels a side fastneus reads",
+                                file=f, field=what)
     if isinstance(calib, (tuple, list)) and len(calib) == 2 and isinstance(calib[0], Camera):
         cam, proj = calib
     else:
@@ -427,6 +439,7 @@ def make_scene_from_calibration(calib, images: Sequence, patterns: Sequence, pos
                             f"{center.tolist()}, radius {radius!r}{derived}", file=bounds_of[0], field=bounds_of[1])
     calib_file = None if isinstance(calib, (tuple, list)) and calib and isinstance(calib[0], Camera) else \
         Path(calib[0] if isinstance(calib, (tuple, list)) else calib)
+    check_bounds_scale(center, radius, [(T, cam.K) for T in c2ws], bounds_of[0], bounds_of[1])
     for T, (f, fld) in zip(c2ws, pose_of):
         check_faces_bounds(T, center, radius, "camera", f, fld)
         if proj is not None:
