@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import math
 import os
 import re
 import shutil
@@ -91,8 +92,28 @@ def atomic_write_text(path: str | os.PathLike, text: str) -> None:
     atomic_write(path, w)
 
 
+def json_safe(obj: Any) -> Any:
+    """``obj`` with every non-finite float (and numpy scalar) replaced by a JSON-able value:
+    NaN and +-inf become None, so the text is strict JSON (``Infinity`` is not JSON)."""
+    if isinstance(obj, dict):
+        return {k: json_safe(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [json_safe(v) for v in obj]
+    if hasattr(obj, "item") and callable(obj.item) and getattr(obj, "ndim", None) == 0:  # numpy / torch scalar
+        obj = obj.item()
+    if isinstance(obj, float) and not math.isfinite(obj):
+        return None
+    return obj
+
+
+def json_text(obj: Any, indent: int = 2) -> str:
+    """Strict JSON of ``obj`` (non-finite numbers as null, see :func:`json_safe`)."""
+    return json.dumps(json_safe(obj), indent=indent, allow_nan=False)
+
+
 def atomic_write_json(path: str | os.PathLike, obj: Any) -> None:
-    atomic_write_text(path, json.dumps(obj, indent=2) + "\n")
+    """Write ``obj`` as strict JSON (NaN/inf as null: metrics of a failed evaluation stay readable), atomically."""
+    atomic_write_text(path, json_text(obj) + "\n")
 
 
 def atomic_write_image(path: str | os.PathLike, rgb) -> None:

@@ -109,7 +109,7 @@ def _update_run_json(run: Path, extra: dict) -> None:
         data = json.loads(path.read_text()) if path.is_file() else {}
         if not isinstance(data, dict):
             data = {}
-    except (OSError, ValueError):
+    except (OSError, ValueError, RecursionError):  # unreadable or absurdly nested: rewritten
         data = {}
     data.update(extra)
     atomic_write_json(path, data)

@@ -6,7 +6,7 @@ from pathlib import Path
 
 from fastneus.cli import add_device_arg, resolve_device
 from fastneus.errors import FastneusError
-from fastneus.io import check_out_dir, confined
+from fastneus.io import check_out_dir, confined, json_text
 
 
 def open_run(run: str, device: str, scene: str | None = None):
@@ -23,7 +23,7 @@ def open_run(run: str, device: str, scene: str | None = None):
             raise FastneusError("run.json missing; pass --scene", file=str(meta))
         try:
             scene = json.loads(meta.read_text())["scene"]
-        except (OSError, UnicodeDecodeError, ValueError, KeyError, TypeError) as e:
+        except (OSError, UnicodeDecodeError, ValueError, KeyError, TypeError, RecursionError) as e:
             raise FastneusError(f"unreadable run metadata: {type(e).__name__}: {e}".splitlines()[0],
                                 file=str(meta), field="scene") from None
         if not isinstance(scene, str) or not scene:
@@ -99,8 +99,14 @@ def _eval(args) -> int:
         scene, tr = open_run(args.run, device, args.scene)
         if args.frame:
             _check_frames(args.frame, scene)  # before anything in the run folder is rewritten
-        metrics = finish_run(tr, eval_frames=args.frame, mesh_resolution=args.resolution)
-    print(json.dumps(metrics, indent=1))
+        try:
+            metrics = finish_run(tr, eval_frames=args.frame, mesh_resolution=args.resolution)
+        except KeyboardInterrupt:  # say what state the run folder is in, not a bare "interrupted"
+            raise KeyboardInterrupt(
+                f"evaluation stopped before it finished; the checkpoint is untouched, and each of mesh.ply, renders/, "
+                f"metrics.json and report.html in {args.run} is its earlier or its new version, never half-written "
+                f"(the set may mix both: run eval again)") from None
+    print(json_text(metrics, indent=1))
     return 0
 
 
