@@ -215,7 +215,7 @@ BOUNDS_MAX_RATIO = 1e3  # bounds radius / farthest camera distance: beyond, the 
 BOUNDS_MIN_PIXELS = 0.5  # the region of interest must span at least this many pixels in some image
 
 
-def check_bounds_scale(center, radius: float, views: list[tuple[np.ndarray, np.ndarray]], file,
+def check_bounds_scale(center, radius: float, views: list[tuple[np.ndarray, np.ndarray, int]], file,
                        fld: str | None = "bounds.radius") -> None:
     """Refuse bounds far out of scale with the cameras (usually other units than the poses).
 
@@ -224,15 +224,18 @@ def check_bounds_scale(center, radius: float, views: list[tuple[np.ndarray, np.n
     reconstruct; either way training would "succeed" on nothing.
 
     Args:
-        views: (cam_to_world [4, 4], K [3, 3]) of every frame.
+        views: (cam_to_world [4, 4], K [3, 3], image width) of every frame.
     """
     r = float(radius)
-    dists = [float(np.linalg.norm(np.asarray(T)[:3, 3] - np.asarray(center))) for T, _ in views]
+    dists = [float(np.linalg.norm(np.asarray(T)[:3, 3] - np.asarray(center))) for T, _, _ in views]
     if max(dists) > 0 and r > BOUNDS_MAX_RATIO * max(dists):
         raise _err(f"bounds radius {r:.4g} is more than {BOUNDS_MAX_RATIO:g}x the farthest camera's distance from "
                    f"the centre ({max(dists):.4g}); are the bounds in other units than the poses?", file, fld)
-    px = [r * float(min(K[0, 0], K[1, 1])) / d if d > r else math.inf for (_, K), d in zip(views, dists)]
-    if max(px) < BOUNDS_MIN_PIXELS:
+    # a focal length under 0.005 px per pixel of width (a field of view over 179 degrees) is itself the error,
+    # reported by fastneus.pipeline.check_inputs naming K; such views do not vote here
+    px = [r * float(min(K[0, 0], K[1, 1])) / d if d > r else math.inf for (_, K, w), d in zip(views, dists)
+          if min(K[0, 0], K[1, 1]) >= 0.005 * w]
+    if px and max(px) < BOUNDS_MIN_PIXELS:
         raise _err(f"bounds radius {r:.4g} spans under {BOUNDS_MIN_PIXELS} pixel in every image (at most "
                    f"{max(px):.3g}); are the bounds in other units than the poses?", file, fld)
 
@@ -705,8 +708,8 @@ class Scene:
                 check_faces_bounds(c2w @ p2c if p2c is not None else fp.proj_to_world, bounds.center, bounds.radius,
                                    "projector", file, f"projectors.{pid}.proj_to_cam" if p2c is not None
                                    else f"{p}.projectors.{pid}.proj_to_world")
-        check_bounds_scale(bounds.center, bounds.radius, [(f.cam_to_world, cameras[f.camera].K) for f in frames],
-                           file)
+        check_bounds_scale(bounds.center, bounds.radius,
+                           [(f.cam_to_world, cameras[f.camera].K, cameras[f.camera].width) for f in frames], file)
 
         il = _dict(d.get("illumination", {}), file, "illumination")
         known = il.get("known", False)

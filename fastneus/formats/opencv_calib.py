@@ -439,7 +439,7 @@ def make_scene_from_calibration(calib, images: Sequence, patterns: Sequence, pos
                             f"{center.tolist()}, radius {radius!r}{derived}", file=bounds_of[0], field=bounds_of[1])
     calib_file = None if isinstance(calib, (tuple, list)) and calib and isinstance(calib[0], Camera) else \
         Path(calib[0] if isinstance(calib, (tuple, list)) else calib)
-    check_bounds_scale(center, radius, [(T, cam.K) for T in c2ws], bounds_of[0], bounds_of[1])
+    check_bounds_scale(center, radius, [(T, cam.K, cam.width) for T in c2ws], bounds_of[0], bounds_of[1])
     for T, (f, fld) in zip(c2ws, pose_of):
         check_faces_bounds(T, center, radius, "camera", f, fld)
         if proj is not None:
