@@ -198,3 +198,12 @@ def test_deep_config_is_refused_before_yaml_parses_it(tmp_path, monkeypatch):
     with pytest.raises(FastneusError) as e:
         load_config(str(cfg))
     assert str(cfg) in str(e.value) and "nested too deeply" in str(e.value)
+
+
+@pytest.mark.parametrize("where", ["projectors", "gt"])
+def test_scene_key_with_line_break_is_one_line(fuzz, where):
+    """A frame's projector id or ground-truth key holding a line break split the error over two lines."""
+    d = json.loads(json.dumps(fuzz.scene_json))
+    d["frames"][0].setdefault(where, {})["line\nbreak"] = {} if where == "projectors" else "x.npy"
+    msg = fz.check_case(fuzz, fz.Case("scene", {"scene.json": json.dumps(d).encode()}))
+    assert f"frames[0].{where}.'line\\nbreak'" in msg

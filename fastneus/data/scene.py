@@ -657,7 +657,7 @@ class Scene:
                 mask = _str(mask, file, f"{p}.mask")
             fps: dict[str, FrameProjector] = {}
             for pid, fp in _dict(f.get("projectors", {}), file, f"{p}.projectors").items():
-                pp = f"{p}.projectors.{pid}"
+                pp = id_field(f"{p}.projectors", pid)  # an unprintable id is quoted: the error stays one line
                 if pid not in projectors:
                     raise _err(f"unknown projector id {pid!r}; known: {sorted(projectors)}", file, pp)
                 fp = _dict(fp, file, pp)
@@ -689,7 +689,7 @@ class Scene:
             gt = {}
             for k, v in _dict(f.get("gt", {}), file, f"{p}.gt").items():
                 if k not in GT_KEYS:
-                    raise _err(f"unknown ground-truth key {k!r}; known: {list(GT_KEYS)}", file, f"{p}.gt.{k}")
+                    raise _err(f"unknown ground-truth key {k!r}; known: {list(GT_KEYS)}", file, id_field(f"{p}.gt", k))
                 gt[k] = _str(v, file, f"{p}.gt.{k}")
                 if check_files and not (root / gt[k]).is_file():
                     raise _err(f"file not found: {root / gt[k]}", file, f"{p}.gt.{k}")
