@@ -47,8 +47,9 @@ def _save(folder: Path, n: int, case: fz.Case, cause: str, e: BaseException | No
         (d / name).write_bytes(data)
     if case.items:
         (d / "overrides.txt").write_text("\n".join(map(repr, case.items)) + "\n")
-    (d / "what.txt").write_text(f"target: {case.target}\nmutation: {case.what}\ncause: {cause}\n\n"
-                                + ("".join(traceback.format_exception(type(e), e, e.__traceback__)) if e else ""))
+    text = f"target: {case.target}\nmutation: {case.what}\ncause: {cause}\n\n" + \
+        ("".join(traceback.format_exception(type(e), e, e.__traceback__)) if e else "")
+    (d / "what.txt").write_bytes(text.encode("utf-8", "backslashreplace"))  # mutations hold lone surrogates
     return d
 
 

@@ -37,13 +37,7 @@ def fuzz(small_scene, tmp_path_factory):
     return f
 
 
-# root causes listed in issue 20 item 9 (RecursionError, UnicodeDecodeError, int() of infinity in
-# transforms.json), fixed alongside: xfail until they land (scripts/fuzz.py --target nerf finds them)
-PENDING = {"nerf"}
-
-
-@pytest.mark.parametrize("target", [pytest.param(t, marks=pytest.mark.xfail(reason="issue 20 item 9 pending"))
-                                    if t in PENDING else t for t in fz.TARGETS])
+@pytest.mark.parametrize("target", fz.TARGETS)
 def test_fuzz_parser(fuzz, target):
     """Mutated inputs load, or fail with one line naming the file; nothing else, no hang, no pickle."""
     @settings(FUZZ, max_examples=EXAMPLES[target])
@@ -166,11 +160,11 @@ def test_calibration_bad_matrix_header_is_refused(fuzz, tmp_path, rows, cols, fm
 def test_look_point_of_degenerate_poses_is_nan():
     """Non-finite axes (a COLMAP quaternion near 1e300 normalises to NaN) raised LinAlgError in the
     least squares; now NaN, which the callers refuse naming the poses file."""
-    from fastneus.formats.opencv_calib import _axes_meeting_point
+    from fastneus.formats.opencv_calib import axes_meeting_point
 
     T = np.eye(4)
     T[:3, :3] = np.nan
-    assert np.all(np.isnan(_axes_meeting_point([T, np.eye(4)])))
+    assert np.all(np.isnan(axes_meeting_point([T, np.eye(4)])))
 
 
 @pytest.mark.parametrize("key", ["line\nbreak", "a\rb"])

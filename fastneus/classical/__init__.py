@@ -1,0 +1,1 @@
+"""fastneus.classical: classical structured-light decoders: Gray code, plane sweep, laser lines."""

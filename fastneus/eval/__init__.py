@@ -1,0 +1,1 @@
+"""fastneus.eval: evaluation: metrics, depth errors, the report."""

@@ -1,0 +1,1 @@
+"""fastneus.light: what projectors emit: pattern generators and decoders, laser planes."""

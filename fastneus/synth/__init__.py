@@ -1,0 +1,1 @@
+"""fastneus.synth: synthetic structured-light scenes with ground truth."""
