@@ -55,12 +55,12 @@ class Config:
     bg_tolerance: float = 0.008        # per-channel distance to `background` still counted as it (~2/255)
     bright_fraction: float = 0.5       # share of rays drawn in proportion to pixel brightness: sparse
                                        # laser lines in dark scenes are otherwise almost never sampled
-    # --- multi-shot (several patterns per viewpoint, e.g. Gray code; fastneus/multishot.py) ---
+    # --- multi-shot (several patterns per viewpoint, e.g. Gray code; fastneus/train/multishot.py) ---
     group_shots: bool = True           # one ray per viewpoint pixel carries its shots (one march and field
                                        # evaluation for all); false = every shot's pixels are separate rays
     shots_per_ray: int = 4             # shots rendered per ray and step, drawn at random (0 = all, in order)
     init_geometry: str = "auto"        # auto | decode | sphere: start the SDF at the decoded surface (Gray code; one-shot sweep)
-                                       # when every viewpoint is a Gray-code sequence (fastneus/geometry_init.py)
+                                       # when every viewpoint is a Gray-code sequence (fastneus/train/geometry_init.py)
     init_geometry_steps: int = 100     # SDF fit steps of that initialisation (counted in the training time; the
                                        # prior keeps fitting afterwards: H100 10 s, 3 views, 100 beat 300 on Gray
                                        # code, colour and cross lines, by taking 20-30 % more training steps)
@@ -126,7 +126,7 @@ class Config:
     illum_warmup_frac: float = 0.15    # i_r, i_b frozen for this fraction of the run (illum_init=scene)
     illum_init: str = "scene"          # scene (values from scene.json) | ones (i_r = i_b = 1)
 
-    # --- real rigs (fastneus/rig.py, docs/REAL-RIGS.md); every part off by default ---
+    # --- real rigs (fastneus/train/rig.py, docs/REAL-RIGS.md); every part off by default ---
     pose_refine: bool = False          # learn an SE(3) correction per viewpoint camera and per projector
     pose_anchor: bool = True           # the first training viewpoint's camera stays fixed (world frame)
     pose_fix_scale: bool = True        # with the anchor, hold the rig's global scale (its one free direction)

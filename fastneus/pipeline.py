@@ -60,9 +60,9 @@ def finish_run(trainer, console=None, eval_frames: list[int] | None = None, mesh
     frames = eval_frames if eval_frames is not None else default_eval_frames(scene, trainer.frames)
     with clock.phase("renders"):
         t = time.perf_counter()
-        from fastneus.export.evaluate import (geometry_metrics, illumination_metrics, image_metrics, render_frames,
+        from fastneus.eval.metrics import (geometry_metrics, illumination_metrics, image_metrics, render_frames,
                                               save_renders)
-        from fastneus.export.report import write_report
+        from fastneus.eval.report import write_report
         from fastneus.io import atomic_write_image
 
         renders = render_frames(trainer, frames)
@@ -74,7 +74,7 @@ def finish_run(trainer, console=None, eval_frames: list[int] | None = None, mesh
                 paths[i]["clean"] = f"renders/{i:03d}_clean.png"
     say(f"renders of frames {frames} -> {run / 'renders'} ({time.perf_counter() - t:.1f}s)")
     with clock.phase("eval"):
-        from fastneus.export.depth import view_depth_metrics
+        from fastneus.eval.depth import view_depth_metrics
 
         tm = mesh.to_trimesh()
         metrics: dict = {"steps": trainer.step, "train_seconds": round(trainer.elapsed, 2),

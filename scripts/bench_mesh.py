@@ -58,7 +58,7 @@ def main() -> None:
     ap.add_argument("--out", default="/tmp/fastneus-bench-mesh")
     args = ap.parse_args()
 
-    from fastneus.export.cli import open_run
+    from fastneus.cli.export import open_run
     from fastneus.export.mesh import extract_mesh_arrays
 
     _, tr = open_run(args.run, args.device)

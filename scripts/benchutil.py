@@ -158,9 +158,9 @@ def parse_sets(items: list[str] | None) -> dict[str, str]:
 
 
 def cached_scene(path: Path, **synth_kw):
-    """Synthesise a scene into ``path`` once (``fastneus.synth.synthesize(path, **synth_kw)``), then load it."""
+    """Synthesise a scene into ``path`` once (``fastneus.synth.render.synthesize(path, **synth_kw)``), then load it."""
     from fastneus.data import Scene
-    from fastneus.synth import synthesize
+    from fastneus.synth.render import synthesize
 
     path = Path(path)
     if not (path / "scene.json").is_file():

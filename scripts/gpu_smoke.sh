@@ -9,7 +9,7 @@ python3 -m pytest -q -x -k cuda tests/test_hashgrid.py tests/test_occupancy.py t
 python3 scripts/bench_kernels.py --device cuda --out $out --no-md 2>&1 | grep -v Warp | tee $out/bench.txt
 python3 -c "
 import time; t=time.time()
-from fastneus.synth import synthesize
+from fastneus.synth.render import synthesize
 synthesize('/tmp/dark20', shape='toy', views=20, size=(800,800), pattern='crosslaser', illum='dark', seed=0, device='cuda', progress=False)
 print('synth 20x800x800 dark on cuda: %.1fs' % (time.time()-t))
 " 2>&1 | grep -v Warp

@@ -18,7 +18,7 @@ training budget of ``--budget`` seconds; for Gray code also the classical baseli
 threshold decoding + ray/column-plane triangulation + epipolar row check, numpy), timed from
 reading the photos to the depth maps.
 
-Metric (``fastneus.export.depth``): on every used viewpoint, the mesh ray-cast (fastneus) or the
+Metric (``fastneus.eval.depth``): on every used viewpoint, the mesh ray-cast (fastneus) or the
 decoded depth map (baseline) against the ground-truth depth of the visible surface: mean absolute
 depth error (mm, % of depth) over pixels where both have a surface, the share of all GT pixels
 within 1% of depth (holes count as misses) and the coverage; for one-shot frames also on the
@@ -60,7 +60,7 @@ def pick_views(n: int) -> list[int]:
 def run_fastneus(scene, views: list[int], device: str, budget: float, extra: list[str], out: Path) -> tuple[dict, object]:
     from fastneus.config import load_config
     from fastneus.pipeline import train_scene
-    from fastneus.train.cli import ONESHOT_CPU
+    from fastneus.cli.train import ONESHOT_CPU
 
     frames = [i for v in views for i in scene.views()[v]]
     gpu = device.startswith("cuda")
@@ -83,7 +83,7 @@ def rec_depth(run: Path, scene, frame: int, device: str, mesh=None) -> np.ndarra
     """The run's mesh (read from ``run`` unless given) ray-cast from ``frame``'s camera."""
     import trimesh
 
-    from fastneus.export.depth import mesh_depth
+    from fastneus.eval.depth import mesh_depth
 
     mesh = trimesh.load(run / "mesh.ply", force="mesh", process=False) if mesh is None else mesh
     cam = scene.frame_camera(frame)
@@ -156,8 +156,9 @@ def main() -> None:
         for line in jsonl.read_text().splitlines():
             r = json.loads(line)
             done.add((r["pattern"], r["views"], r["method"]))
-    from fastneus.baselines.graycode import baseline_depth_metrics, graycode_baseline
-    from fastneus.export.depth import depth_image, error_map
+    from fastneus.classical.graycode import graycode_baseline
+    from fastneus.eval.depth import baseline_depth_metrics
+    from fastneus.eval.depth import depth_image, error_map
 
     for pattern in args.patterns.split(","):
         scene = make_scene(out / "scenes", pattern, args.size, args.shape, args.device)
@@ -238,7 +239,7 @@ def main() -> None:
             panels.append((p, list(zip(names, np.load(tp)))))
     fig_path = None
     if panels:
-        from fastneus.patterns import write_png
+        from fastneus.light.patterns import write_png
 
         fig_path = out / f"pattern-study-{kind}.png"
         write_png(fig_path, figure(panels))

@@ -28,7 +28,7 @@ Chamfer (mm), PSNR and what was recovered:
 - ``laser``: the projectors are laser line projectors (the cross-laser lines as light
   planes, the exact model, ``synth --laser-planes``). Runs: the exact plane model; the
   pattern-image approximation of the same rig (the planes rasterised into a pattern at the
-  orbit distance, ``fastneus.lasers.pattern_approximation``), same photos.
+  orbit distance, ``fastneus.light.lasers.pattern_approximation``), same photos.
 
 - ``water``: the same geometry (seed, poses) rendered in air and under water (``synth
   --medium water``: flat ports on the camera and the projectors, attenuation and
@@ -61,7 +61,7 @@ GEOM = ["chamfer_sym_mm", "chamfer_gt2rec_mm", "fscore", "psnr_pattern", "psnr_t
 def train(scene, device: str, budget: float, out: Path, extra: list[str]) -> tuple[object, dict]:
     from functools import partial
 
-    import fastneus.export.evaluate as ev
+    import fastneus.eval.metrics as ev
     from fastneus.config import load_config
     from fastneus.pipeline import train_scene
 
@@ -79,7 +79,7 @@ def train(scene, device: str, budget: float, out: Path, extra: list[str]) -> tup
 
 
 def synth(out: Path, args, **kw):
-    from fastneus.synth import synthesize
+    from fastneus.synth.render import synthesize
 
     return synthesize(out, shape=args.shape, views=args.views, size=(args.size, args.size), pattern="crosslaser",
                       illum="normal", seed=args.seed, device=args.device, progress=False, contact_sheet=False,
@@ -88,7 +88,7 @@ def synth(out: Path, args, **kw):
 
 # --------------------------------------------------------------------------- parts
 def part_pose(args, out: Path) -> list[dict]:
-    from fastneus.rig import perturb_scene, pose_errors
+    from fastneus.train.rig import perturb_scene, pose_errors
 
     truth = synth(out / "scenes" / "pose", args)
     frames = list(range(len(truth.frames)))
@@ -139,7 +139,7 @@ def part_blur(args, out: Path) -> list[dict]:
 
 
 def part_laser(args, out: Path) -> list[dict]:
-    from fastneus.lasers import pattern_approximation
+    from fastneus.light.lasers import pattern_approximation
 
     exact = synth(out / "scenes" / "laser", args, laser_planes=True)
     approx = pattern_approximation(exact, out / "scenes" / "laser-as-pattern", args.proj_size[0], args.proj_size[1],

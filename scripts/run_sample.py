@@ -81,7 +81,7 @@ def load_sample(sample: Path, downscale: int, cache: Path):
 
 def evaluate(trainer, scene, frames: list[int]) -> tuple[dict, dict]:
     """Per-frame PSNR / IoU on ``frames`` and the renders (for the grid)."""
-    from fastneus.export.evaluate import render_frames
+    from fastneus.eval.metrics import render_frames
 
     renders = render_frames(trainer, frames)
     per = {}

@@ -134,7 +134,7 @@ def start_clock(method: str, tr) -> float:
     initialisation (timed: it counts as training). Returns the seconds it took."""
     if method == "baseline":
         return 0.0
-    from fastneus.geometry_init import initialise_geometry
+    from fastneus.train.geometry_init import initialise_geometry
 
     tr.prime()
     t = time.perf_counter()
@@ -160,7 +160,7 @@ def render_rays_any(trainer, o, d, fidx, proj, chunk: int) -> dict:
 
 def psnr_subset(trainer, scene, frame: int, n_pix: int, chunk: int) -> float:
     """PSNR (with the pattern, vs the photo) on ``n_pix`` fixed random pixels of ``frame``."""
-    from fastneus.sampling import RayBank, build_projection
+    from fastneus.train.rays import RayBank, build_projection
 
     bank = RayBank(scene, [frame], trainer.device)
     proj = build_projection(scene, [frame], trainer.device)
@@ -179,7 +179,7 @@ def psnr_subset(trainer, scene, frame: int, n_pix: int, chunk: int) -> float:
 
 def evaluate(trainer, scene, args, frames: list[int], eval_frame: int) -> dict:
     """Chamfer (mm) of the mesh and PSNR of the evaluation frame (not timed)."""
-    from fastneus.export.evaluate import geometry_metrics, image_metrics, render_frames
+    from fastneus.eval.metrics import geometry_metrics, image_metrics, render_frames
     from fastneus.export.mesh import extract_mesh
 
     t = time.perf_counter()

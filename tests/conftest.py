@@ -15,7 +15,7 @@ def small_scene(tmp_path_factory):
 
     The GT mesh is left out of scene.json: Chamfer on 100k points would dominate these tests' time.
     """
-    from fastneus.synth import synthesize
+    from fastneus.synth.render import synthesize
 
     out = tmp_path_factory.mktemp("small") / "sphere3"
     scene = synthesize(out, shape="sphere", views=3, size=(24, 24), pattern="crosslaser", illum="normal", seed=0,

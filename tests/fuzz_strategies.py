@@ -584,7 +584,7 @@ def override_list(draw, keys: list[str]) -> tuple[list[str], str]:
 # --------------------------------------------------------------------------- bases
 def synth_scene(folder: Path) -> Path:
     """The tests' small scene (conftest ``small_scene``): a sphere, 3 views of 24x24, one projector."""
-    from fastneus.synth import synthesize
+    from fastneus.synth.render import synthesize
 
     scene = synthesize(folder, shape="sphere", views=3, size=(24, 24), pattern="crosslaser", illum="normal", seed=0,
                        device="cpu", proj_size=(64, 48), progress=False, contact_sheet=False)

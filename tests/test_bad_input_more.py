@@ -559,7 +559,7 @@ def _strict(text: str):
 def test_metrics_json_never_holds_infinity(bases, tmp_path, capsys, monkeypatch):  # noqa: F811
     """A metric that comes out infinite or NaN (e.g. PSNR of a perfect or an empty render) is
     written as null: metrics.json and eval's printout stay strict JSON."""
-    import fastneus.export.evaluate as ev
+    import fastneus.eval.metrics as ev
     from fastneus.io import json_text
 
     run = Ctx(bases, tmp_path).run()

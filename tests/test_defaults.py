@@ -138,7 +138,7 @@ class _RigScene:
 
 
 def test_seen_cells_need_two_views():
-    from fastneus.visibility import seen_cells, seen_fraction
+    from fastneus.train.visibility import seen_cells, seen_fraction
 
     scene, r = _RigScene(), 16
     one = seen_cells(scene, [0], r, "cpu", min_views=2)            # a single viewpoint: one camera suffices
@@ -191,7 +191,7 @@ def test_mesh_has_no_surface_outside_allowed():
 
 # ---------------------------------------------------------------- shapes
 def test_rock_is_a_closed_irregular_surface():
-    from fastneus.shapes import SHAPES, make_shape
+    from fastneus.synth.shapes import SHAPES, make_shape
 
     assert "rock" in SHAPES
     m = make_shape("rock")

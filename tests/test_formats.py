@@ -15,7 +15,7 @@ from fastneus.data import Scene, look_at, rigid_inverse
 from fastneus.errors import FastneusError
 from fastneus.formats.activeneus import read_activeneus, write_activeneus
 from fastneus.formats.detect import load_scene
-from fastneus.projection import pixel_rays, project_points, sample_pattern
+from fastneus.geometry.projection import pixel_rays, project_points, sample_pattern
 
 SAMPLE = Path(__file__).resolve().parents[2] / "shared" / "data" / "activeneus_sample"
 if not SAMPLE.is_dir():

@@ -1,4 +1,4 @@
-"""One-shot labelling of thin projected lines (fastneus/baselines/laserlines.py) and the geometry
+"""One-shot labelling of thin projected lines (fastneus/classical/laserlines.py) and the geometry
 init it feeds: candidates along a ray are the runs of lit samples, a ray inside a sheet says
 nothing, labels are right where accepted, and init_geometry=auto uses it only on one-shot runs
 lit by thin coloured lines."""
@@ -10,10 +10,10 @@ import numpy as np
 import pytest
 import torch
 
-from fastneus.baselines.laserlines import _runs, laser_line_depth, sparse_line_frame
+from fastneus.classical.laserlines import _runs, laser_line_depth, sparse_line_frame
 from fastneus.config import load_config
-from fastneus.geometry_init import MAX_SWEEP_VIEWS, MIN_LINE_VIEWS, line_frames
-from fastneus.synth import synthesize
+from fastneus.train.geometry_init import MAX_SWEEP_VIEWS, MIN_LINE_VIEWS, line_frames
+from fastneus.synth.render import synthesize
 
 
 def test_runs_are_candidates_and_long_runs_say_nothing():
@@ -79,7 +79,7 @@ def test_the_auto_rule(laser_scene, tmp_path):
 
 
 def test_init_geometry_fits_the_labelled_lines(laser_scene, tmp_path):
-    from fastneus.geometry_init import initialise_geometry, lined_points
+    from fastneus.train.geometry_init import initialise_geometry, lined_points
     from fastneus.train.trainer import Trainer
 
     sc = laser_scene

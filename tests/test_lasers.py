@@ -182,7 +182,7 @@ def test_scene_json_round_trip_and_errors(tmp_path):
     s.save(tmp_path / "s2")
     s2 = Scene.load(tmp_path / "s2")
     assert np.allclose(s2.projectors["L"].planes[0].normal, pj.planes[0].normal) and s2.active_lasers(1) == []
-    from fastneus.sampling import build_projection
+    from fastneus.train.rays import build_projection
 
     pr = build_projection(s, [0, 1], "cpu")
     assert pr.laser_on.tolist() == [[0, 1], [0, 0]] and pr.planes.shape == (2, 1, 12)
@@ -206,8 +206,8 @@ def test_scene_json_round_trip_and_errors(tmp_path):
 def test_synth_laser_planes_match_the_crosslaser_pattern(tmp_path):
     """The exact model and the pattern image agree where the approximation is exact (a surface
     at the reference depth): synth's laser-plane images ~ its crosslaser images."""
-    from fastneus.lasers import pattern_approximation
-    from fastneus.synth import synthesize
+    from fastneus.light.lasers import pattern_approximation
+    from fastneus.synth.render import synthesize
 
     kw = dict(shape="sphere", views=1, size=(48, 48), seed=0, device="cpu", progress=False, contact_sheet=False,
               proj_size=(96, 72), noise=0.0, cam_distance=4.0)
@@ -228,7 +228,7 @@ def test_synth_laser_planes_match_the_crosslaser_pattern(tmp_path):
 
 def test_train_on_laser_scene_and_pose_refine(tmp_path):
     from fastneus.config import load_config
-    from fastneus.synth import synthesize
+    from fastneus.synth.render import synthesize
     from fastneus.train.trainer import Trainer
 
     synthesize(tmp_path / "las", shape="sphere", views=2, size=(24, 24), seed=0, device="cpu", progress=False,
@@ -248,7 +248,7 @@ def test_import_calib_laser_plane_file(tmp_path):
     import cv2
 
     from fastneus.formats.opencv_calib import make_scene_from_calibration
-    from fastneus.lasers import read_laser_planes
+    from fastneus.light.lasers import read_laser_planes
 
     f = tmp_path / "planes.yaml"
     f.write_text("units: mm\nlasers:\n  red:\n    planes:\n"

@@ -11,9 +11,9 @@ from fastneus.config import load_config
 from fastneus.errors import FastneusError
 from fastneus.field.model import SDFField
 from fastneus.field.renderer import render_rays
-from fastneus.multishot import ShotBank, group_views, is_multishot, make_bank
-from fastneus.sampling import RayBank, build_projection
-from fastneus.synth import synthesize
+from fastneus.train.multishot import ShotBank, group_views, is_multishot, make_bank
+from fastneus.train.rays import RayBank, build_projection
+from fastneus.synth.render import synthesize
 
 
 @pytest.fixture(scope="module")
@@ -128,7 +128,7 @@ def test_trainer_uses_shot_bank_and_trains(gray, tmp_path):
 
 def test_geometry_init_from_decoded_gray_code(tmp_path):
     """init_geometry=auto on a one-view Gray-code scene: the SDF starts at the decoded surface."""
-    from fastneus.geometry_init import decodable_views, decoded_points, initialise_geometry
+    from fastneus.train.geometry_init import decodable_views, decoded_points, initialise_geometry
     from fastneus.train.trainer import Trainer
 
     s = synthesize(tmp_path / "g1", shape="toy", views=1, size=(48, 48), pattern="graycode", seed=4, progress=False)

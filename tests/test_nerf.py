@@ -15,7 +15,7 @@ from fastneus.data import Scene
 from fastneus.errors import FastneusError
 from fastneus.formats.detect import detect_format, load_scene
 from fastneus.formats.nerf import GL_TO_CV, read_nerf, write_nerf
-from fastneus.projection import project_points
+from fastneus.geometry.projection import project_points
 from test_formats import make_scene
 
 
@@ -157,7 +157,7 @@ def test_convert_cli_to_nerf(tmp_path, capsys):
 
 
 def test_round_trip_keeps_underwater_ports(tmp_path):
-    from fastneus.synth import synthesize
+    from fastneus.synth.render import synthesize
 
     s = synthesize(tmp_path / "w", shape="sphere", views=2, size=(16, 16), seed=0, device="cpu", progress=False,
                    contact_sheet=False, proj_size=(32, 24), medium="water")

@@ -7,13 +7,14 @@ import pytest
 import torch
 import trimesh
 
-from fastneus.baselines.graycode import baseline_depth_metrics, graycode_baseline, graycode_depth
+from fastneus.classical.graycode import graycode_baseline, graycode_depth
+from fastneus.eval.depth import baseline_depth_metrics
 from fastneus.cli import main
 from fastneus.data import Scene, look_at
-from fastneus.export.depth import DepthPool, depth_errors, lit_pixels, mesh_depth, view_depth_metrics
-from fastneus.patterns import decode_graycode_captured, make_pattern
-from fastneus.projection import project_points
-from fastneus.synth import synthesize
+from fastneus.eval.depth import DepthPool, depth_errors, lit_pixels, mesh_depth, view_depth_metrics
+from fastneus.light.patterns import decode_graycode_captured, make_pattern
+from fastneus.geometry.projection import project_points
+from fastneus.synth.render import synthesize
 
 
 # --------------------------------------------------------------------------- decoding
@@ -35,7 +36,7 @@ def test_captured_graycode_round_trip_with_shading(size):
     np.testing.assert_array_equal(col[valid], jj[valid])
     np.testing.assert_array_equal(row[valid], ii[valid])
     # a global threshold cannot do this: half the max brightness misreads dark-surface pixels
-    from fastneus.patterns import decode_graycode
+    from fastneus.light.patterns import decode_graycode
 
     gcol, _ = decode_graycode(photos, w, h)
     assert (gcol != jj).mean() > 0.05

@@ -7,7 +7,7 @@ import pytest
 
 from fastneus.cli import main
 from fastneus.errors import FastneusError
-from fastneus.patterns import KINDS, decode_graycode, decode_phaseshift, make_pattern
+from fastneus.light.patterns import KINDS, decode_graycode, decode_phaseshift, make_pattern
 
 
 @pytest.mark.parametrize("kind", KINDS)

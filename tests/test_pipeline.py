@@ -20,7 +20,7 @@ TINY = [f"steps={STEPS}", "log_every=10", "save_every=50", "mesh_resolution=48",
 
 @pytest.fixture(scope="module")
 def tiny_scene(tmp_path_factory):
-    from fastneus.synth import synthesize
+    from fastneus.synth.render import synthesize
 
     # a torus, not a sphere: a sphere filling the bounds is explained by an all-solid field
     out = tmp_path_factory.mktemp("scene") / "torus4"

@@ -1,4 +1,4 @@
-"""One-shot plane sweep (fastneus/baselines/planesweep.py) and the geometry initialisation it
+"""One-shot plane sweep (fastneus/classical/planesweep.py) and the geometry initialisation it
 feeds: accurate where it accepts, silent on the background, used by init_geometry=auto only on
 one-shot / few-view runs lit by a dense pattern."""
 from __future__ import annotations
@@ -7,10 +7,10 @@ import numpy as np
 import pytest
 import torch
 
-from fastneus.baselines.planesweep import dense_pattern_frame, planesweep_depth
+from fastneus.classical.planesweep import dense_pattern_frame, planesweep_depth
 from fastneus.config import load_config
-from fastneus.geometry_init import MAX_SWEEP_VIEWS, sweepable_frames
-from fastneus.synth import synthesize
+from fastneus.train.geometry_init import MAX_SWEEP_VIEWS, sweepable_frames
+from fastneus.synth.render import synthesize
 
 
 @pytest.fixture(scope="module")
@@ -55,7 +55,7 @@ def test_dense_frames_and_the_auto_rule(colorline_scene, tmp_path):
 
 
 def test_init_geometry_fits_the_swept_surface(colorline_scene, tmp_path):
-    from fastneus.geometry_init import initialise_geometry
+    from fastneus.train.geometry_init import initialise_geometry
     from fastneus.train.trainer import Trainer
 
     sc = colorline_scene

@@ -10,7 +10,7 @@ import torch
 from fastneus.kernels.project import (identity_blur, port_dir_torch, port_row, project_pattern,
                                       project_pattern_torch)
 from fastneus.kernels.render import render_pattern, render_pattern_torch
-from fastneus.projection import sample_pattern
+from fastneus.geometry.projection import sample_pattern
 from test_render import DEVICES, _close, _seed, make_inputs
 
 PROJ_ARGS = ("pos", "ray_index", "offsets", "counts", "ray_frame", "proj_K", "proj_W", "proj_pattern", "patterns")

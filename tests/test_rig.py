@@ -1,4 +1,4 @@
-"""Real-rig corrections (fastneus/rig.py): SE(3) maths, exact undo of a known perturbation,
+"""Real-rig corrections (fastneus/train/rig.py): SE(3) maths, exact undo of a known perturbation,
 pose recovery through the render kernel (both backends) and the camera rays, trainer hook."""
 from __future__ import annotations
 
@@ -11,8 +11,8 @@ import pytest
 import torch
 
 from fastneus.config import load_config
-from fastneus.rig import Rig, perturb_scene, pose_errors, rigid_inv, se3_matrix, so3_exp
-from fastneus.sampling import RayBank, build_projection
+from fastneus.train.rig import Rig, perturb_scene, pose_errors, rigid_inv, se3_matrix, so3_exp
+from fastneus.train.rays import RayBank, build_projection
 from test_formats import make_scene
 
 
@@ -208,7 +208,7 @@ def test_camera_pose_recovered_through_rays(tmp_path):
 
 
 def test_trainer_learns_corrections_after_warmup_and_resumes(tmp_path):
-    from fastneus.synth import synthesize
+    from fastneus.synth.render import synthesize
     from fastneus.train.trainer import Trainer, load_checkpoint
 
     synthesize(tmp_path / "sc", shape="sphere", views=3, size=(24, 24), seed=0, device="cpu", progress=False,
@@ -240,8 +240,8 @@ def test_trainer_learns_corrections_after_warmup_and_resumes(tmp_path):
 def test_blur_kernel_recovered_through_project_op(tmp_path):
     """Light from a defocused projector (a known 5x5 Gaussian) pins the learned kernel."""
     from fastneus.kernels import get_op
-    from fastneus.patterns import make_pattern
-    from fastneus.synth import blur_kernel
+    from fastneus.light.patterns import make_pattern
+    from fastneus.synth.render import blur_kernel
 
     scene = make_scene(tmp_path / "s", n=1, n_proj=1, seed=6)
     cv2.imwrite(str(tmp_path / "s" / "patterns" / "q0.png"),
@@ -272,7 +272,7 @@ def test_blur_kernel_recovered_through_project_op(tmp_path):
 def test_blur_identity_at_init_and_learned_in_training(tmp_path):
     from fastneus.data import Scene
     from fastneus.field.renderer import render_rays
-    from fastneus.synth import synthesize
+    from fastneus.synth.render import synthesize
     from fastneus.train.trainer import Trainer
 
     synthesize(tmp_path / "sc", shape="sphere", views=2, size=(24, 24), seed=0, device="cpu", progress=False,
@@ -303,7 +303,7 @@ def test_blur_identity_at_init_and_learned_in_training(tmp_path):
 def test_synth_projector_blur_changes_only_the_lit_pixels(tmp_path):
     from fastneus.data import Scene
     from fastneus.errors import FastneusError
-    from fastneus.synth import synthesize
+    from fastneus.synth.render import synthesize
 
     kw = dict(shape="sphere", views=1, size=(32, 32), seed=0, device="cpu", progress=False, contact_sheet=False,
               proj_size=(64, 48), noise=0.0)

@@ -135,7 +135,7 @@ def _with_pattern_id(scene: Scene, new: str) -> Scene:
 
 @pytest.mark.parametrize("writer", ["fastneus", "nerf"])
 def test_writers_refuse_an_unsafe_id_given_directly(small_scene, tmp_path, writer):
-    from fastneus.formats.cli import write_fastneus
+    from fastneus.formats.fastneus import write_fastneus
     from fastneus.formats.nerf import write_nerf
 
     sentinel = _sentinel(tmp_path)
@@ -162,8 +162,8 @@ def test_safe_dest_keeps_every_write_inside(tmp_path):
 
 
 def test_pattern_approximation_refuses_an_unsafe_projector_id(tmp_path):
-    from fastneus.lasers import pattern_approximation
-    from fastneus.synth import synthesize
+    from fastneus.light.lasers import pattern_approximation
+    from fastneus.synth.render import synthesize
 
     s = synthesize(tmp_path / "laser", shape="sphere", views=1, size=(16, 16), proj_size=(32, 24), baselines=(0.6,),
                    laser_planes=True, progress=False, contact_sheet=False)
@@ -181,7 +181,7 @@ def test_pattern_approximation_refuses_an_unsafe_projector_id(tmp_path):
 
 
 def test_laser_plane_file_refuses_an_unsafe_laser_id(tmp_path):
-    from fastneus.lasers import read_laser_planes
+    from fastneus.light.lasers import read_laser_planes
 
     f = tmp_path / "planes.yaml"
     f.write_text("lasers:\n  ../../x:\n    planes:\n      - {normal: [1, 0, 0], offset: 0, colour: [1, 0, 0], "
@@ -280,7 +280,7 @@ def test_synth_bad_value_leaves_the_previous_scene(previous_synth, capsys, bad):
 
 
 def test_synth_interrupted_mid_render_leaves_the_previous_scene(previous_synth, monkeypatch):
-    import fastneus.synth as synth
+    import fastneus.synth.render as synth
 
     before = _snapshot(previous_synth)
     real = synth.write_png

@@ -18,7 +18,7 @@ ROOT = Path(__file__).resolve().parents[1]
 
 @pytest.fixture(scope="module")
 def tiny_scene(tmp_path_factory):
-    from fastneus.synth import synthesize
+    from fastneus.synth.render import synthesize
 
     out = tmp_path_factory.mktemp("scene") / "sphere3"
     synthesize(out, shape="sphere", views=3, size=(32, 32), seed=0, device="cpu", progress=False)

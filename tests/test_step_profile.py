@@ -22,7 +22,7 @@ def test_union_of_intervals():
 
 
 def test_step_profile_cpu_end_to_end(tmp_path):
-    from fastneus.synth import synthesize
+    from fastneus.synth.render import synthesize
 
     scene = tmp_path / "s"
     synthesize(scene, shape="sphere", views=2, size=(24, 24), seed=1, device="cpu", progress=False,

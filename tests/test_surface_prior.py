@@ -1,4 +1,4 @@
-"""The decoded-surface prior (fastneus.geometry_init.SurfacePrior): its loss is ~0 for the SDF whose
+"""The decoded-surface prior (fastneus.train.geometry_init.SurfacePrior): its loss is ~0 for the SDF whose
 zero set holds the points and grows as the surface moves off them; training keeps it (fading) after
 a decoded / swept geometry init, and it holds the surface there against a misleading photo."""
 from __future__ import annotations
@@ -9,7 +9,7 @@ import torch
 
 from fastneus.config import load_config
 from fastneus.errors import FastneusError
-from fastneus.geometry_init import SurfacePrior
+from fastneus.train.geometry_init import SurfacePrior
 
 
 class _Sphere:
@@ -59,8 +59,8 @@ def test_loss_is_zero_on_the_surface_and_grows_off_it():
 def test_training_keeps_the_prior_after_a_decoded_init(tmp_path):
     """One Gray-code view: with the prior the SDF stays at the decoded points while training on
     photos whose pattern is wrong (illumination far off), without it it drifts further."""
-    from fastneus.geometry_init import decoded_points
-    from fastneus.synth import synthesize
+    from fastneus.train.geometry_init import decoded_points
+    from fastneus.synth.render import synthesize
     from fastneus.train.trainer import Trainer
 
     s = synthesize(tmp_path / "g", shape="toy", views=1, size=(48, 48), pattern="graycode",
@@ -91,8 +91,8 @@ def test_prior_weight_is_validated():
 
 
 def test_a_resumed_run_gets_the_prior_back_without_a_new_fit(tmp_path):
-    from fastneus.geometry_init import initialise_geometry
-    from fastneus.synth import synthesize
+    from fastneus.train.geometry_init import initialise_geometry
+    from fastneus.synth.render import synthesize
     from fastneus.train.trainer import Trainer, trainer_from_run
 
     s = synthesize(tmp_path / "g", shape="toy", views=1, size=(48, 48), pattern="graycode", seed=3, progress=False,

@@ -10,8 +10,8 @@ import trimesh
 from fastneus.cli import main
 from fastneus.data import Scene, look_at
 from fastneus.kernels.raycast import raycast_mesh, raycast_mesh_torch
-from fastneus.projection import Z_MIN, pixel_rays, project_points, sample_pattern
-from fastneus.synth import synthesize
+from fastneus.geometry.projection import Z_MIN, pixel_rays, project_points, sample_pattern
+from fastneus.synth.render import synthesize
 
 
 def _random_pose(rng) -> np.ndarray:

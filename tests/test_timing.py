@@ -79,7 +79,7 @@ def test_cli_train_times_each_phase_from_process_start(small_scene, tmp_path):
         "import fastneus.export.mesh as M\n"
         "orig = M.save_mesh\n"
         "def spy(mesh, path):\n"
-        "    seen = sorted(m for m in ('fastneus.export.evaluate', 'fastneus.export.report', 'trimesh', "
+        "    seen = sorted(m for m in ('fastneus.eval.metrics', 'fastneus.eval.report', 'trimesh', "
         "'scipy.spatial') if m in sys.modules)\n"
         "    print('AT_MESH', seen)\n"
         "    return orig(mesh, path)\n"

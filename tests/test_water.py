@@ -12,7 +12,7 @@ import torch
 from fastneus.data import Scene
 from fastneus.errors import FastneusError
 from fastneus.kernels.project import port_dir_torch, port_row
-from fastneus.projection import refract_rays
+from fastneus.geometry.projection import refract_rays
 
 
 def test_refract_rays_obeys_snell_and_starts_on_the_outer_face():
@@ -33,14 +33,14 @@ def test_refract_rays_obeys_snell_and_starts_on_the_outer_face():
 
 
 def _water_scene(tmp_path, medium="water", views=2, size=(32, 32)):
-    from fastneus.synth import synthesize
+    from fastneus.synth.render import synthesize
 
     return synthesize(tmp_path / medium, shape="sphere", views=views, size=size, seed=0, device="cpu", progress=False,
                       contact_sheet=False, proj_size=(64, 48), noise=0.0, medium=medium)
 
 
 def test_raybank_rays_project_back_to_their_pixels(tmp_path):
-    from fastneus.sampling import RayBank
+    from fastneus.train.rays import RayBank
 
     s = _water_scene(tmp_path)
     bank = RayBank(s, [1], "cpu")
@@ -75,9 +75,9 @@ def test_medium_model_matches_synth_image_formation(tmp_path):
     """The trainer's water composite with the true coefficients reproduces synth's pixels: an
     opaque ray at range r and an empty ray (background)."""
     from fastneus.config import load_config
-    from fastneus.rig import Rig
-    from fastneus.sampling import RayBank, build_projection
-    from fastneus.synth import WATER, _Water
+    from fastneus.train.rig import Rig
+    from fastneus.train.rays import RayBank, build_projection
+    from fastneus.synth.render import WATER, _Water
 
     s = _water_scene(tmp_path, views=1)
     bank, proj = RayBank(s, [0], "cpu"), build_projection(s, [0], "cpu")
@@ -106,7 +106,7 @@ def test_synth_water_magnifies_and_colours_the_background(tmp_path):
     bg = w.image(0)[0, 0].astype(float) / 255
     assert np.allclose(bg, np.array([0.02, 0.12, 0.18]) * (1 - np.exp(-np.array([0.25, 0.12, 0.08]) * 20)), atol=2 / 255)
     with pytest.raises(FastneusError, match="medium"):
-        from fastneus.synth import synthesize
+        from fastneus.synth.render import synthesize
 
         synthesize(tmp_path / "x", shape="sphere", views=1, size=(8, 8), progress=False, medium="oil")
 

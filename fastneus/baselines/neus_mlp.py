@@ -16,8 +16,8 @@ What the paper (Ichimaru et al., 3DV 2024) builds on NeuS (Wang et al., NeurIPS 
 The pattern-projection colour formula, NeuS alpha and compositing are *literally* fastneus's:
 the 128 samples per ray are packed into the packed-sample layout (offsets / counts /
 ray_index / t0 / t1) and fed to :func:`fastneus.kernels.render.render_pattern_torch`. Rays and
-projector data come from :class:`fastneus.sampling.RayBank` (uniform pixels, as the paper)
-and :func:`fastneus.sampling.build_projection`. Only the model and the sampler differ from
+projector data come from :class:`fastneus.train.rays.RayBank` (uniform pixels, as the paper)
+and :func:`fastneus.train.rays.build_projection`. Only the model and the sampler differ from
 fastneus, so meshing and evaluation (``fastneus.export``) are shared unchanged.
 """
 from __future__ import annotations
@@ -33,7 +33,7 @@ import torch.nn as nn
 
 from fastneus.errors import FastneusError
 from fastneus.kernels.render import render_pattern_torch
-from fastneus.sampling import RayBank, build_projection
+from fastneus.train.rays import RayBank, build_projection
 from fastneus.train.guard import finite_step
 
 
@@ -378,7 +378,7 @@ class BaselineTrainer:
 
         Args:
             origins, dirs: [B, 3] normalised rays; fidx: [B] int32 row of ``proj``.
-            proj: :class:`fastneus.sampling.Projection` (default: the training frames').
+            proj: :class:`fastneus.train.rays.Projection` (default: the training frames').
         Returns:
             dict: color, texture [B, 3], opacity, depth [B], grad [S, 3], pos [S, 3], n_samples,
             and normal [B, 3] if ``with_normals``.

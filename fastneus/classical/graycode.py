@@ -2,7 +2,7 @@
 
 What a structured-light user would run instead of a neural reconstruction: per viewpoint,
 decode the projector column and row of every camera pixel from the Gray-code photos
-(:func:`fastneus.patterns.decode_graycode_captured`, per-pixel threshold), intersect the
+(:func:`fastneus.light.patterns.decode_graycode_captured`, per-pixel threshold), intersect the
 camera ray with the plane of the decoded projector column (the column centre; no sub-pixel
 refinement, as in OpenCV's ``structured_light`` module), and reject pixels whose triangulated
 point does not reproject within ``row_tol`` pixels of the decoded projector row (the epipolar
@@ -14,8 +14,9 @@ import time
 
 import numpy as np
 
+from fastneus.data.scene import view_frames
 from fastneus.errors import FastneusError
-from fastneus.patterns import decode_graycode_captured, gray_bits
+from fastneus.light.patterns import decode_graycode_captured, gray_bits
 
 
 def _sequence_projector(scene, frames: list[int]) -> str:
@@ -72,7 +73,7 @@ def graycode_depth(scene, frames: list[int], min_contrast: float = 0.06, row_tol
 
     Args:
         scene: a loaded scene; ``frames``: the frame indices of one viewpoint, one per Gray-code
-            plane, in :func:`fastneus.patterns.graycode` order (as ``fastneus synth`` writes them).
+            plane, in :func:`fastneus.light.patterns.graycode` order (as ``fastneus synth`` writes them).
     Returns:
         [H, W] float32 z-depth (world units), NaN where nothing was triangulated.
     """
@@ -95,21 +96,7 @@ def graycode_baseline(scene, frames: list[int] | None = None, **kw) -> tuple[dic
     Returns:
         ({first frame of each view: [H, W] depth}, seconds spent; image reading included).
     """
-    from fastneus.export.depth import view_frames
-
     frames = list(range(len(scene.frames))) if frames is None else list(frames)
     t = time.perf_counter()
     out = {idx[0]: graycode_depth(scene, idx, **kw) for idx in view_frames(scene, frames).values()}
     return out, time.perf_counter() - t
-
-
-def baseline_depth_metrics(scene, depths: dict[int, np.ndarray]) -> dict:
-    """The visible-surface depth metrics (:mod:`fastneus.export.depth`) of baseline depth maps."""
-    from fastneus.export.depth import DepthPool
-
-    pool = DepthPool()
-    for i, z in depths.items():
-        gt = scene.gt_depth(i)
-        if gt is not None:
-            pool.add(z, gt)
-    return pool.metrics("depth_", 1000.0 if scene.units == "m" else 1.0)

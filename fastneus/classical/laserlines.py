@@ -2,7 +2,7 @@
 
 A thin line pattern is no code: a red pixel may be lit by any of the red light sheets of any
 projector (4 cross-laser projectors x 8 vertical lines = 32 sheets), and the window sweep of
-:mod:`fastneus.baselines.planesweep` finds no unique match. But along one camera ray, inside the
+:mod:`fastneus.classical.planesweep` finds no unique match. But along one camera ray, inside the
 scene's bounds, only a few of those sheets are crossed, and the true one is among them:
 
 1. Lit pixels per colour channel: the channel well above the pixel's darkest one (a grey
@@ -30,7 +30,7 @@ scene's bounds, only a few of those sheets are crossed, and the true one is amon
    0.3 % (at most 11 %) of labels on a wrong sheet (> 5 % off); a third stage at 24 px labelled
    ~20 % more pixels, with 6 % (at most 29 %) of them wrong.
 
-``fastneus.geometry_init`` fits the SDF to these points (2-3 one-shot viewpoints lit by thin lines) and
+``fastneus.train.geometry_init`` fits the SDF to these points (2-3 one-shot viewpoints lit by thin lines) and
 keeps them as a prior; the pixels between the lines stay unconstrained by them. torch only.
 """
 from __future__ import annotations
@@ -41,8 +41,8 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from fastneus.baselines.planesweep import _box, lit_shares, photo_grid
-from fastneus.projection import normalised_world_to_proj, pattern_at_points, pixel_rays, unit_sphere_chord
+from fastneus.classical.planesweep import box_mean, lit_shares, photo_grid
+from fastneus.geometry.projection import normalised_world_to_proj, pattern_at_points, pixel_rays, unit_sphere_chord
 
 
 def sparse_line_frame(scene, i: int, max_lit: float = 0.3) -> bool:
@@ -109,9 +109,9 @@ def laser_line_depth(scene, i: int, n_depths: int = 1024, device="cpu", max_widt
         if not bool(lit.any()) or float(lit.sum()) > max_share * float(fg.sum()):
             continue
         e4 = (e * lit).reshape(1, 1, H, W)
-        den = _box(e4, 5, 5).clamp_min(1e-12)
-        cu = (_box(e4 * xx, 5, 5) / den)[0, 0]
-        cv = (_box(e4 * yy, 5, 5) / den)[0, 0]
+        den = box_mean(e4, 5, 5).clamp_min(1e-12)
+        cu = (box_mean(e4 * xx, 5, 5) / den)[0, 0]
+        cv = (box_mean(e4 * yy, 5, 5) / den)[0, 0]
         v, u = torch.nonzero(lit, as_tuple=True)
         pu, pv = cu[v, u].double(), cv[v, u].double()
         o, dn = pixel_rays(K, c2w, torch.stack([pu, pv], -1), S)

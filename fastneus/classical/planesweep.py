@@ -14,7 +14,7 @@ window too).
 
 This is what the photometric optimisation cannot do from a sphere with one view: it searches
 every depth at once instead of following a gradient into the nearest minimum (which, for a
-striped pattern, is one stripe away). ``fastneus.geometry_init`` fits the SDF to these points
+striped pattern, is one stripe away). ``fastneus.train.geometry_init`` fits the SDF to these points
 before training (``init_geometry=auto`` on one-shot scenes); the neural training then refines
 them. torch only (CPU or GPU); one depth map per frame.
 """
@@ -77,7 +77,7 @@ def _window_range(x: torch.Tensor, r: int) -> torch.Tensor:
     return hi - lo
 
 
-def _box(x: torch.Tensor, kh: int, kw: int) -> torch.Tensor:
+def box_mean(x: torch.Tensor, kh: int, kw: int) -> torch.Tensor:
     """Mean over a kh x kw window (edges: over the part inside), x [B, C, H, W]."""
     return F.avg_pool2d(x, (kh, kw), stride=1, padding=(kh // 2, kw // 2), count_include_pad=False)
 
@@ -169,8 +169,8 @@ def planesweep_depth(scene, i: int, n_depths: int = 256, window: tuple[int, int]
     # straddles a silhouette still scores the object's part (thin parts: the torus's ring)
     fg = (torch.tensor(msk, device=dev) > 0.5) if msk is not None else (img[0].max(0).values > 8 / 255.0)
     M = fg.float().reshape(1, 1, H, W)
-    nM = _box(M, kh, kw).clamp_min(1e-6)
-    wbox = lambda x: _box(M * x, kh, kw) / nM  # noqa: E731
+    nM = box_mean(M, kh, kw).clamp_min(1e-6)
+    wbox = lambda x: box_mean(M * x, kh, kw) / nM  # noqa: E731
     # photo statistics per channel (constant over depths)
     mI = wbox(img)
     vI = (wbox(img * img) - mI * mI).clamp_min(0)

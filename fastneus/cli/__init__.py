@@ -6,7 +6,7 @@ raises :class:`fastneus.errors.FastneusError`, printed here as one line (exit 2)
 """
 from __future__ import annotations
 
-from . import timing as _timing
+from fastneus import timing as _timing
 
 _timing.note_process_start()  # first thing: the wall clock of a run counts from here (or /proc's start)
 
@@ -15,17 +15,8 @@ import importlib  # noqa: E402
 import os  # noqa: E402
 import sys  # noqa: E402
 
-from .errors import FastneusError  # noqa: E402
+from fastneus.errors import FastneusError  # noqa: E402
 
-# verb modules, in the order shown by --help
-VERB_MODULES = [
-    "fastneus.demo",
-    "fastneus.synth",
-    "fastneus.patterns",
-    "fastneus.train.cli",
-    "fastneus.export.cli",
-    "fastneus.formats.cli",
-]
 
 
 def resolve_device(name: str | None) -> str:
@@ -73,11 +64,13 @@ class _Parser(argparse.ArgumentParser):
 # verb -> the module registering it (the parser of one verb is built without importing the
 # others: ``fastneus train`` must not pay for synth's torch + trimesh + scipy imports)
 VERBS = {
-    "demo": "fastneus.demo", "synth": "fastneus.synth", "patterns": "fastneus.patterns",
-    "train": "fastneus.train.cli", "oneshot": "fastneus.train.cli",
-    "mesh": "fastneus.export.cli", "render": "fastneus.export.cli", "eval": "fastneus.export.cli",
-    "convert": "fastneus.formats.cli", "import-calib": "fastneus.formats.cli",
+    "demo": "fastneus.cli.demo", "synth": "fastneus.cli.synth", "patterns": "fastneus.cli.patterns",
+    "train": "fastneus.cli.train", "oneshot": "fastneus.cli.train",
+    "mesh": "fastneus.cli.export", "render": "fastneus.cli.export", "eval": "fastneus.cli.export",
+    "convert": "fastneus.cli.formats", "import-calib": "fastneus.cli.formats",
 }
+# verb modules, in the order shown by --help
+VERB_MODULES = list(dict.fromkeys(VERBS.values()))
 
 
 def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:

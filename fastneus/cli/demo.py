@@ -33,7 +33,7 @@ def run_demo(out: Path, device: str, overrides: list[str] | None = None, console
     from fastneus.io import check_out_dir
     from fastneus import timing
     from fastneus.pipeline import train_scene
-    from fastneus.synth import synthesize
+    from fastneus.synth.render import synthesize
 
     clock = timing.take_clock()  # from the process start (fastneus.cli)
     con = console or Console()

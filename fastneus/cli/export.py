@@ -70,7 +70,7 @@ def _mesh(args) -> int:
 
 
 def _render(args) -> int:
-    from fastneus.export.evaluate import render_frames, save_renders
+    from fastneus.eval.metrics import render_frames, save_renders
 
     if args.out is not None:
         check_out_dir(args.out)

@@ -2,68 +2,12 @@
 from __future__ import annotations
 
 import math
-import os
-import shutil
 import warnings
 from pathlib import Path
 
 from fastneus.errors import FastneusError
 
 TARGETS = ("fastneus", "activeneus", "nerf")
-
-
-def write_fastneus(scene, out: str | os.PathLike):
-    """Copy a scene's files into ``out`` (image/, mask/, pattern/, gt/) and save ``scene.json``.
-
-    Files are copied byte for byte (no re-encoding, so nothing is lost); camera
-    distortion stays in the scene. Copies are named by frame index, or by pattern id (a
-    safe id, :data:`fastneus.data.scene.SAFE_ID`), and every destination is checked to lie
-    inside ``out``. Built aside and swapped in (:func:`fastneus.io.staged_output`): files in
-    ``out`` that fastneus did not write are never replaced or removed.
-    Returns the saved, re-loaded :class:`Scene`.
-    """
-    from fastneus.data import Scene
-    from fastneus.io import staged_output
-
-    out = Path(out)
-    if out.resolve() == Path(scene.root).resolve():
-        raise FastneusError("output folder is the input folder; choose another --out", file=out)
-    with staged_output(out) as stage:
-        _write_fastneus(scene, stage)
-    return Scene.load(out)
-
-
-def _write_fastneus(scene, out: Path) -> None:
-    import copy
-
-    from fastneus.data.scene import check_id
-    from fastneus.io import safe_dest
-
-    sj = Path(scene.root) / "scene.json"
-    s = copy.deepcopy(scene)
-    copied: dict[str, str] = {}
-
-    def put(rel: str, sub: str, name: str, fld: str) -> str:
-        src = scene.path(rel)
-        key = str(src.resolve())
-        if key not in copied:
-            dst = f"{sub}/{name}{src.suffix.lower()}"
-            (out / sub).mkdir(parents=True, exist_ok=True)
-            shutil.copyfile(src, safe_dest(out, dst, file=sj, field=fld))
-            copied[key] = dst
-        return copied[key]
-
-    for i, f in enumerate(s.frames):
-        f.image = put(f.image, "image", f"{i:03d}", f"frames[{i}].image")
-        if f.mask is not None:
-            f.mask = put(f.mask, "mask", f"{i:03d}", f"frames[{i}].mask")
-        f.gt = {k: put(v, "gt", f"{i:03d}_{k}", f"frames[{i}].gt.{k}") for k, v in f.gt.items()}
-    for q in s.patterns.values():
-        q.file = put(q.file, "pattern", check_id(q.id, sj, "patterns"), f"patterns.{q.id}.file")
-    if s.gt_mesh is not None:
-        s.gt_mesh = put(s.gt_mesh, "gt", "mesh", "gt.mesh")
-    s.root = out
-    s.save(out)
 
 
 def _convert(args) -> int:
@@ -84,6 +28,8 @@ def _convert(args) -> int:
     # each writer builds aside and swaps in at the end (fastneus.io.staged_output): an unreadable image
     # found half-way leaves --out as it was, and files there that fastneus did not write are never touched
     if args.to == "fastneus":
+        from fastneus.formats.fastneus import write_fastneus
+
         write_fastneus(scene, args.out)
     elif args.to == "nerf":
         from fastneus.formats.nerf import write_nerf
@@ -98,12 +44,12 @@ def _convert(args) -> int:
 
 
 def _list_images(folder: str, what: str) -> list[Path]:
-    from fastneus.formats.activeneus import _images
+    from fastneus.formats.activeneus import image_files
 
     p = Path(folder)
     if p.is_file():
         return [p]
-    files = _images(p)
+    files = image_files(p)
     if not files:
         raise FastneusError("no images found", file=p, field=what)
     return files
@@ -111,7 +57,7 @@ def _list_images(folder: str, what: str) -> list[Path]:
 
 def _import_calib(args) -> int:
     from fastneus.formats.opencv_calib import make_scene_from_calibration
-    from fastneus.lasers import read_laser_planes
+    from fastneus.light.lasers import read_laser_planes
 
     if not args.patterns and not args.laser_planes:
         raise FastneusError("give --patterns (a pattern projector) and/or --laser-planes FILE", field="--patterns")

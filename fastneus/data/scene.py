@@ -24,7 +24,8 @@ from typing import Any
 
 import numpy as np
 
-from ..errors import FastneusError
+from fastneus.errors import FastneusError
+from fastneus.geometry.cameras import look_at, rigid_inverse  # noqa: F401 (public here too)
 
 FORMAT = "fastneus-scene"
 VERSION = 1
@@ -999,29 +1000,9 @@ def planes_to_list(planes: list[LaserPlane]) -> list[dict]:
              "fan_deg": float(p.fan_deg), "axis": _list(p.axis)} for p in planes]
 
 
-def rigid_inverse(T: np.ndarray) -> np.ndarray:
-    """Inverse of a rigid 4x4 transform (R^T, -R^T t)."""
-    out = np.eye(4)
-    R = T[:3, :3]
-    out[:3, :3] = R.T
-    out[:3, 3] = -R.T @ T[:3, 3]
+def view_frames(scene, frames: list[int]) -> dict[int, list[int]]:
+    """Training frames grouped by viewpoint (view id -> frame indices, in order)."""
+    out: dict[int, list[int]] = {}
+    for i in frames:
+        out.setdefault(scene.frames[i].view, []).append(i)
     return out
-
-
-def look_at(eye, target, up=(0.0, 0.0, 1.0)) -> np.ndarray:
-    """[4, 4] OpenCV cam_to_world at ``eye`` looking at ``target`` (x right, y down, z forward).
-
-    ``up`` is the world up direction; the image's y axis points along -up.
-    """
-    eye = np.asarray(eye, dtype=np.float64)
-    z = np.asarray(target, dtype=np.float64) - eye
-    z /= np.linalg.norm(z)
-    up = np.asarray(up, dtype=np.float64)
-    x = np.cross(z, up)  # right = forward x up
-    if np.linalg.norm(x) < 1e-8:  # looking along up: any perpendicular will do
-        x = np.cross(z, np.array([1.0, 0.0, 0.0]) if abs(z[0]) < 0.9 else np.array([0.0, 1.0, 0.0]))
-    x /= np.linalg.norm(x)
-    y = np.cross(z, x)
-    T = np.eye(4)
-    T[:3, 0], T[:3, 1], T[:3, 2], T[:3, 3] = x, y, z, eye
-    return T

@@ -22,6 +22,8 @@ import math
 import numpy as np
 import torch
 
+from fastneus.data.scene import view_frames
+
 LIT_THRESHOLD = 12  # 8-bit difference between photo and pattern-free image that counts as lit
 
 
@@ -111,14 +113,6 @@ def lit_pixels(photo: np.ndarray, clean: np.ndarray, threshold: int = LIT_THRESH
     return (photo.astype(np.int16) - clean.astype(np.int16)).max(axis=2) > threshold
 
 
-def view_frames(scene, frames: list[int]) -> dict[int, list[int]]:
-    """Training frames grouped by viewpoint (view id -> frame indices, in order)."""
-    out: dict[int, list[int]] = {}
-    for i in frames:
-        out.setdefault(scene.frames[i].view, []).append(i)
-    return out
-
-
 def view_depth_metrics(mesh, scene, frames: list[int], device="cpu", unit_mm: float | None = None) -> dict:
     """Depth metrics of ``mesh`` on every training viewpoint of ``frames`` that has GT depth.
 
@@ -179,3 +173,17 @@ def depth_image(z: np.ndarray, lo: float, hi: float) -> np.ndarray:
     img = cv2.applyColorMap(g, cv2.COLORMAP_VIRIDIS)[:, :, ::-1].copy()
     img[~ok] = 0
     return img
+
+
+def baseline_depth_metrics(scene, depths: dict[int, np.ndarray]) -> dict:
+    """The visible-surface depth metrics of depth maps from a baseline (Gray code, plane sweep).
+
+    Args:
+        depths: {frame index: [H, W] depth along the camera z axis, world units}.
+    """
+    pool = DepthPool()
+    for i, z in depths.items():
+        gt = scene.gt_depth(i)
+        if gt is not None:
+            pool.add(z, gt)
+    return pool.metrics("depth_", 1000.0 if scene.units == "m" else 1.0)

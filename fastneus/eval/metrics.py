@@ -19,7 +19,7 @@ from scipy.spatial import cKDTree
 
 from fastneus.errors import FastneusError
 from fastneus.field.renderer import render_image
-from fastneus.sampling import RayBank, build_projection
+from fastneus.train.rays import RayBank, build_projection
 
 
 def _nn_dist(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -152,7 +152,7 @@ def render_frames(trainer, frames: list[int], chunk: int = 8192) -> dict[int, di
         else:
             r = render_image(trainer.field, trainer.grid.bits, trainer.grid.resolution, proj, o, d, fidx, cfg,
                              i_r=i_r, i_b=i_b, chunk=chunk)
-        if rig is not None:  # in water: attenuation + back-scatter (fastneus.rig)
+        if rig is not None:  # in water: attenuation + back-scatter (fastneus.train.rig)
             with torch.no_grad():
                 color, texture = (rig.composite(r[k], r, cfg.background) for k in ("color", "texture"))
         else:

@@ -46,7 +46,7 @@ def render_rays(field, bits: torch.Tensor, grid_res: int, proj, origins: torch.T
     Args:
         field: :class:`fastneus.field.model.SDFField`.
         bits: [R^3] uint8 occupancy bits; grid_res: R.
-        proj: :class:`fastneus.sampling.Projection` (per-frame projector data).
+        proj: :class:`fastneus.train.rays.Projection` (per-frame projector data).
         origins, dirs: [B, 3] float32 normalised rays (dirs unit length).
         fidx: [B] int32 row of ``proj`` (frame) per ray, or [B, K] for K shots of one viewpoint per ray
             (multi-shot: the samples and field are shared, the pattern term is rendered per shot).

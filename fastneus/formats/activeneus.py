@@ -38,14 +38,14 @@ SAME_TOL = 1e-6  # per-frame matrices equal within this are treated as one rig
 
 
 # --------------------------------------------------------------------------- helpers
-def _images(folder: Path) -> list[Path]:
+def image_files(folder: Path) -> list[Path]:
     """Sorted image files of ``folder`` (frame i = i-th file; names are not parsed)."""
     if not folder.is_dir():
         return []
     return sorted(p for p in folder.iterdir() if p.suffix.lower() in IMG_EXT and p.is_file())
 
 
-def _get(npz, key: str, shape: tuple[int, ...], file: Path) -> np.ndarray:
+def npz_matrix(npz, key: str, shape: tuple[int, ...], file: Path) -> np.ndarray:
     """A finite float64 array ``npz[key]`` of exactly ``shape`` (-1 = any length)."""
     a = npz_array(npz, key, file)
     try:
@@ -65,7 +65,7 @@ def _digest(path: Path) -> str:
     return hashlib.sha1(path.read_bytes()).hexdigest()
 
 
-def _group(mats: list[np.ndarray]) -> list[int]:
+def group_equal(mats: list[np.ndarray]) -> list[int]:
     """Index of the first matrix equal (within SAME_TOL) to each one: identical -> one id."""
     out: list[int] = []
     for i, m in enumerate(mats):
@@ -74,7 +74,7 @@ def _group(mats: list[np.ndarray]) -> list[int]:
     return out
 
 
-def _rel(path: Path, root: Path) -> str:
+def rel_posix(path: Path, root: Path) -> str:
     return Path(os.path.relpath(path, root)).as_posix()
 
 
@@ -124,10 +124,10 @@ def open_npz_folder(root: Path):
     if not npz_path.is_file():
         raise FastneusError("missing camera file", file=npz_path)
     npz = open_npz(npz_path)  # never unpickles: scenes are untrusted
-    images = _images(root / "image")
+    images = image_files(root / "image")
     if not images:
         raise FastneusError("no images found (expected image/NNN.png)", file=root / "image")
-    masks = _images(root / "mask")
+    masks = image_files(root / "mask")
     if masks and len(masks) != len(images):
         raise FastneusError(f"{len(masks)} masks for {len(images)} images", file=root / "mask")
     return npz_path, npz, images, masks
@@ -157,7 +157,7 @@ def read_activeneus(path: str | os.PathLike) -> Scene:
 
     # patterns: pattern/NNN_KK.png grouped by the part before the last "_"
     pat_files: dict[str, list[Path]] = {}
-    for p in _images(root / "pattern"):
+    for p in image_files(root / "pattern"):
         stem, sep, _ = p.stem.rpartition("_")
         if not sep:
             raise FastneusError("pattern files must be named NNN_KK.png (frame_projector)", file=p)
@@ -167,12 +167,12 @@ def read_activeneus(path: str | os.PathLike) -> Scene:
     # per-frame matrices
     Ks, poses, Ss, PKs, CPs = [], [], [], [], []
     for i in range(n):
-        Ks.append(check_intrinsics(_get(npz, f"cam_mat_{i}", (4, 4), npz_path)[:3, :3], npz_path, f"cam_mat_{i}"))
-        poses.append(check_pose(_get(npz, f"cam_pose_{i}", (4, 4), npz_path), npz_path, f"cam_pose_{i}"))
-        Ss.append(_get(npz, f"scale_mat_{i}", (4, 4), npz_path))
+        Ks.append(check_intrinsics(npz_matrix(npz, f"cam_mat_{i}", (4, 4), npz_path)[:3, :3], npz_path, f"cam_mat_{i}"))
+        poses.append(check_pose(npz_matrix(npz, f"cam_pose_{i}", (4, 4), npz_path), npz_path, f"cam_pose_{i}"))
+        Ss.append(npz_matrix(npz, f"scale_mat_{i}", (4, 4), npz_path))
         has_proj = f"proj_mat_{i}" in npz.files or f"cam_proj_pose_{i}" in npz.files
-        PKs.append(_get(npz, f"proj_mat_{i}", (-1, 4, 4), npz_path) if has_proj else np.zeros((0, 4, 4)))
-        CPs.append(_get(npz, f"cam_proj_pose_{i}", (-1, 4, 4), npz_path) if has_proj else np.zeros((0, 4, 4)))
+        PKs.append(npz_matrix(npz, f"proj_mat_{i}", (-1, 4, 4), npz_path) if has_proj else np.zeros((0, 4, 4)))
+        CPs.append(npz_matrix(npz, f"cam_proj_pose_{i}", (-1, 4, 4), npz_path) if has_proj else np.zeros((0, 4, 4)))
         for k in range(len(CPs[i])):
             check_pose(CPs[i][k], npz_path, f"cam_proj_pose_{i}[{k}]")
         for k in range(len(PKs[i])):
@@ -229,7 +229,7 @@ def read_activeneus(path: str | os.PathLike) -> Scene:
         shared = True
 
     # cameras: one per distinct K (pixel centre shift +0.5 to fastneus convention)
-    cam_of = _group(Ks)
+    cam_of = group_equal(Ks)
     cameras: dict[str, Any] = {}
     cam_ids: list[str] = []
     for i in range(n):
@@ -261,7 +261,7 @@ def read_activeneus(path: str | os.PathLike) -> Scene:
             for i in range(n):
                 proj_id[i].append(pid)
         else:
-            kgroup = _group([PKs[i][k][:3, :3] for i in range(n)])
+            kgroup = group_equal([PKs[i][k][:3, :3] for i in range(n)])
             for i in range(n):
                 pid = f"proj{k}" if kgroup[i] == 0 else f"proj{k}_{kgroup[i]:03d}"
                 projectors.setdefault(pid, {"K": PKs[i][k][:3, :3].tolist(), "width": pw, "height": ph,
@@ -276,13 +276,13 @@ def read_activeneus(path: str | os.PathLike) -> Scene:
         for k in range(P):
             g = pat_groups[0 if shared or len(pat_groups) == 1 else i]
             qid = f"p{k:02d}" if shared or len(pat_groups) == 1 else f"f{i:03d}_p{k:02d}"
-            patterns.setdefault(qid, {"file": _rel(g[k], root)})
+            patterns.setdefault(qid, {"file": rel_posix(g[k], root)})
             e: dict[str, Any] = {"pattern": qid}
             if not rig[k]:
                 e["proj_to_world"] = (c2w @ np.linalg.inv(CPs[i][k])).tolist()
             fp[proj_id[i][k]] = e
-        frames.append({"image": _rel(images[i], root), "camera": cam_ids[i], "cam_to_world": c2w.tolist(),
-                       "projectors": fp, "view": i, **({"mask": _rel(masks[i], root)} if masks else {})})
+        frames.append({"image": rel_posix(images[i], root), "camera": cam_ids[i], "cam_to_world": c2w.tolist(),
+                       "projectors": fp, "view": i, **({"mask": rel_posix(masks[i], root)} if masks else {})})
     # frames with the same pose and camera are one viewpoint (multi-shot sequences)
     for i in range(n):
         for j in range(i):

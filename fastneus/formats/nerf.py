@@ -158,9 +158,9 @@ def _image_path(root: Path, rel: Any, file, fld: str) -> str:
 
 
 def _look_point(c2ws: list[np.ndarray]) -> np.ndarray:
-    from fastneus.formats.opencv_calib import _axes_meeting_point
+    from fastneus.formats.opencv_calib import axes_meeting_point
 
-    return _axes_meeting_point(c2ws)
+    return axes_meeting_point(c2ws)
 
 
 def read_nerf(path: str | os.PathLike) -> Scene:

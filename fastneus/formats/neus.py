@@ -16,7 +16,7 @@ import numpy as np
 
 from fastneus.data.scene import FORMAT, VERSION, Scene, image_size
 from fastneus.errors import FastneusError
-from fastneus.formats.activeneus import NPZ, _get, _group, _images, _rel, open_npz_folder
+from fastneus.formats.activeneus import NPZ, npz_matrix, group_equal, image_files, rel_posix, open_npz_folder
 from fastneus.formats.safe_npz import npz_array
 
 
@@ -63,7 +63,7 @@ def read_neus(path: str | os.PathLike) -> Scene:
         if Wm.shape not in ((3, 4), (4, 4)):
             raise FastneusError(f"expected shape 3x4 or 4x4, got {'x'.join(map(str, Wm.shape)) or 'scalar'}",
                                 file=npz_path, field=key)
-        Wm = _get(npz, key, Wm.shape, npz_path)  # numeric and finite
+        Wm = npz_matrix(npz, key, Wm.shape, npz_path)  # numeric and finite
         if abs(np.linalg.det(Wm[:3, :3])) < 1e-12:
             raise FastneusError("singular projection matrix", file=npz_path, field=key)
         K, pose = decompose_projection(Wm)
@@ -71,7 +71,7 @@ def read_neus(path: str | os.PathLike) -> Scene:
         K[1, 2] += 0.5
         Ks.append(K)
         poses.append(pose)
-        Si = _get(npz, f"scale_mat_{i}", (4, 4), npz_path)
+        Si = npz_matrix(npz, f"scale_mat_{i}", (4, 4), npz_path)
         if S is None:
             S = Si
             s = S[0, 0]
@@ -81,7 +81,7 @@ def read_neus(path: str | os.PathLike) -> Scene:
             raise FastneusError("differs from scale_mat_0; all frames must share one normalisation",
                                 file=npz_path, field=f"scale_mat_{i}")
 
-    cam_of = _group(Ks)
+    cam_of = group_equal(Ks)
     cameras, frames = {}, []
     for i in range(len(images)):
         cid = f"cam{cam_of[i]:03d}"
@@ -90,9 +90,9 @@ def read_neus(path: str | os.PathLike) -> Scene:
             if wh is None:
                 raise FastneusError("cannot read image", file=images[i])
             cameras[cid] = {"K": Ks[i].tolist(), "width": wh[0], "height": wh[1], "dist": [0.0] * 5}
-        fr = {"image": _rel(images[i], root), "camera": cid, "cam_to_world": poses[i].tolist(), "view": i}
+        fr = {"image": rel_posix(images[i], root), "camera": cid, "cam_to_world": poses[i].tolist(), "view": i}
         if masks:
-            fr["mask"] = _rel(masks[i], root)
+            fr["mask"] = rel_posix(masks[i], root)
         frames.append(fr)
     data = {"format": FORMAT, "version": VERSION, "units": "m", "name": root.resolve().name,
             "bounds": {"center": S[:3, 3].tolist(), "radius": float(S[0, 0])},

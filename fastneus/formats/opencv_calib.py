@@ -297,7 +297,7 @@ def read_procam_calibration(path, proj_size=None, units: str = "mm", cam_size=No
 
 
 # --------------------------------------------------------------------------- scenes
-def _axes_meeting_point(c2ws: list[np.ndarray]) -> np.ndarray:
+def axes_meeting_point(c2ws: list[np.ndarray]) -> np.ndarray:
     """[3] least-squares point closest to all optical axes (where the cameras look)."""
     A = np.zeros((3, 3))
     b = np.zeros(3)
@@ -353,7 +353,7 @@ def make_scene_from_calibration(calib, images: Sequence, patterns: Sequence, pos
         bounds: ``(center [3], radius)`` in metres; default from the poses file's bounds,
             COLMAP's points3D.txt (median, 90th percentile distance x 1.2), or the
             point the cameras look at.
-        lasers: laser-plane projectors (``fastneus.lasers.read_laser_planes``), lit in every
+        lasers: laser-plane projectors (``fastneus.light.lasers.read_laser_planes``), lit in every
             frame; with lasers the calibration may hold the camera only and ``patterns``
             may be empty (a laser-only rig).
 
@@ -427,7 +427,7 @@ def make_scene_from_calibration(calib, images: Sequence, patterns: Sequence, pos
         center, radius = np.asarray(bounds[0], np.float64), float(bounds[1])
         bounds_of = (None, "--bounds")
     if center is None:
-        center = _axes_meeting_point(c2ws)
+        center = axes_meeting_point(c2ws)
         radius = 0.5 * min(float(np.linalg.norm(T[:3, 3] - center)) for T in c2ws)
         bounds_of = (pose_of[0][0], None)
     # poses and bounds are checked here, naming the input they came from: the staged scene.json

@@ -35,14 +35,14 @@ UNITS = {"mm": 1e-3, "cm": 1e-2, "m": 1.0}
 
 def crosslaser_planes(K: np.ndarray, width: int, height: int, depth: float, seed: int = 0, count: int = 8,
                       line_width: int = 3) -> list[LaserPlane]:
-    """The planes of ``fastneus.patterns.crosslaser``'s lines (same seed, same line positions):
+    """The planes of ``fastneus.light.patterns.crosslaser``'s lines (same seed, same line positions):
     red vertical and green horizontal light sheets through the projector centre, sheet
     thickness = ``line_width`` pixels at ``depth`` (world units), fans spanning the image."""
-    from fastneus.patterns import _offset
+    from fastneus.light.patterns import line_offset
 
     rng = np.random.default_rng(seed)
-    ox = _offset(rng, width / count, seed)
-    oy = _offset(rng, height / count, seed)
+    ox = line_offset(rng, width / count, seed)
+    oy = line_offset(rng, height / count, seed)
     fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
     thick = line_width * depth / fx
     fan_v = math.degrees(2 * math.atan(height / 2 / fy))  # a vertical sheet spans the image height
@@ -99,8 +99,8 @@ def pattern_approximation(scene, out, width: int, height: int, hfov_deg: float, 
     """
     from fastneus.data.scene import Pattern, Scene, check_id
     from fastneus.io import safe_dest
-    from fastneus.patterns import write_png
-    from fastneus.synth import projector_intrinsics
+    from fastneus.light.patterns import write_png
+    from fastneus.geometry.cameras import projector_intrinsics
 
     import os
 

@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import FastneusError
+from fastneus.errors import FastneusError
 
 KINDS = ("crosslaser", "graycode", "grid", "colorline", "dots", "phaseshift")
 
@@ -28,7 +28,7 @@ KINDS = ("crosslaser", "graycode", "grid", "colorline", "dots", "phaseshift")
 BINARY_COLOURS = np.array([[r, g, b] for r in (0, 255) for g in (0, 255) for b in (0, 255)], dtype=np.uint8)
 
 
-def _offset(rng: np.random.Generator, spacing: float, seed: int) -> float:
+def line_offset(rng: np.random.Generator, spacing: float, seed: int) -> float:
     """Line phase: centred for seed 0, else a seeded shift within one spacing."""
     return 0.0 if seed == 0 else float(rng.uniform(-0.5, 0.5) * spacing)
 
@@ -47,8 +47,8 @@ def crosslaser(width: int, height: int, seed: int = 0, count: int = 8, line_widt
                vertical_color=(255, 0, 0), horizontal_color=(0, 255, 0), **_) -> list[np.ndarray]:
     """Red vertical and green horizontal laser lines; colours add where lines cross."""
     rng = np.random.default_rng(seed)
-    v = _lines(width, count, line_width, _offset(rng, width / count, seed))
-    h = _lines(height, count, line_width, _offset(rng, height / count, seed))
+    v = _lines(width, count, line_width, line_offset(rng, width / count, seed))
+    h = _lines(height, count, line_width, line_offset(rng, height / count, seed))
     img = np.zeros((height, width, 3), dtype=np.int32)
     img[:, v] += np.asarray(vertical_color, dtype=np.int32)
     img[h, :] += np.asarray(horizontal_color, dtype=np.int32)
@@ -162,8 +162,8 @@ def decode_graycode_captured(images, width: int, height: int, min_contrast: floa
 def grid(width: int, height: int, seed: int = 0, count: int = 16, line_width: int = 2, **_) -> list[np.ndarray]:
     """White grid: ``count`` lines per axis, ``line_width`` px wide."""
     rng = np.random.default_rng(seed)
-    v = _lines(width, count, line_width, _offset(rng, width / count, seed))
-    h = _lines(height, count, line_width, _offset(rng, height / count, seed))
+    v = _lines(width, count, line_width, line_offset(rng, width / count, seed))
+    h = _lines(height, count, line_width, line_offset(rng, height / count, seed))
     on = v[None, :] | h[:, None]
     return [np.repeat((on * 255).astype(np.uint8)[:, :, None], 3, axis=2)]
 
@@ -276,31 +276,3 @@ def write_png(path: str | os.PathLike, rgb: np.ndarray) -> None:
     with os.fdopen(fd, "wb") as f:
         f.write(buf.tobytes())
     os.replace(tmp, path)
-
-
-def register(subparsers) -> None:
-    p = subparsers.add_parser("patterns", help="write projector pattern PNGs",
-                              description="Generate projector patterns (" + ", ".join(KINDS) + ") as PNG files.")
-    p.add_argument("--kind", required=True, choices=KINDS)
-    p.add_argument("--size", default="1024x768", help="projector resolution WxH (default 1024x768)")
-    p.add_argument("--out", required=True, help="output folder")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--count", type=int, default=None,
-                   help="lines per axis (crosslaser, grid), dots (dots) or steps (phaseshift)")
-    p.add_argument("--line-width", type=int, default=None, help="line / stripe / dot width in pixels")
-    p.add_argument("--inverse", action="store_true", help="graycode: add inverse patterns")
-    p.set_defaults(func=_run)
-
-
-def _run(args) -> int:
-    w, h = parse_size(args.size)
-    ims = make_pattern(args.kind, w, h, seed=args.seed, count=args.count, line_width=args.line_width,
-                       inverse=args.inverse or None)
-    from fastneus.io import make_out_dir
-
-    out = make_out_dir(args.out)
-    for k, im in enumerate(ims):
-        write_png(out / f"{args.kind}_{k:02d}.png", im)
-    print(f"wrote {len(ims)} {args.kind} pattern{'s' if len(ims) != 1 else ''} "
-          f"({w}x{h}) to {out}/{args.kind}_NN.png")
-    return 0

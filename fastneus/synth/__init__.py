@@ -1,1 +1,1 @@
-"""fastneus.synth: synthetic structured-light scenes with ground truth."""
+"""fastneus.synth.render: synthetic structured-light scenes with ground truth."""

@@ -6,7 +6,7 @@ rigidly attached to the camera. Image formation follows DESIGN.md exactly:
     D = ambient * albedo * (0.3 + 0.7 * max(0, n . l))            (view-independent)
     c = D + sum_k (i_r * D + i_b) * Q_k * V_k                       (pattern projection)
 
-with Q_k the bilinear pattern sample (fastneus.projection) and V_k = 1 when the point
+with Q_k the bilinear pattern sample (fastneus.geometry.projection) and V_k = 1 when the point
 sees projector k (a shadow ray from the point toward the projector centre). Then
 Gaussian noise and 8-bit quantisation; background is black. Ray casting runs through
 ``fastneus.kernels.raycast`` (Warp BVH, CPU or CUDA); everything else is vectorised torch.
@@ -22,13 +22,14 @@ import numpy as np
 import torch
 import trimesh
 
-from .data.scene import (Bounds, Camera, FlatPort, Frame, FrameProjector, Illumination, Pattern, Projector,
-                         Scene, look_at)
-from .errors import FastneusError
-from .patterns import KINDS as PATTERN_KINDS
-from .patterns import make_pattern, parse_size, write_png
-from .projection import Z_MIN, pixel_rays, project_points, refract_rays, sample_pattern
-from .shapes import SHAPES, load_mesh, make_shape, normalise_mesh
+from fastneus.data.scene import (Bounds, Camera, FlatPort, Frame, FrameProjector, Illumination, Pattern, Projector,
+                                 Scene)
+from fastneus.errors import FastneusError
+from fastneus.geometry.cameras import camera_intrinsics, look_at, projector_intrinsics, rig_proj_to_cam
+from fastneus.light.patterns import KINDS as PATTERN_KINDS
+from fastneus.light.patterns import make_pattern, write_png
+from fastneus.geometry.projection import Z_MIN, pixel_rays, project_points, refract_rays, sample_pattern
+from fastneus.synth.shapes import load_mesh, make_shape, normalise_mesh
 
 ALBEDOS = ("uniform", "procedural", "checker", "vertex")
 ILLUMS = {"normal": 1.0, "dark": 0.1}
@@ -40,30 +41,6 @@ _OUR_DIRS = ("images", "masks", "depth", "normals", "clean", "patterns")
 
 
 # --------------------------------------------------------------------------- geometry
-def camera_intrinsics(width: int, height: int, focal: float | None = None) -> np.ndarray:
-    """[3, 3] K: NeRF-Synthetic-like f = 1111.11 px at 800 px wide (~40 deg), centred."""
-    f = focal if focal is not None else 1111.111 * width / 800.0
-    return np.array([[f, 0, width / 2.0], [0, f, height / 2.0], [0, 0, 1.0]])
-
-
-def projector_intrinsics(width: int, height: int, hfov_deg: float = 60.0) -> np.ndarray:
-    """[3, 3] K of a projector with horizontal field of view ``hfov_deg``."""
-    f = (width / 2.0) / math.tan(math.radians(hfov_deg) / 2.0)
-    return np.array([[f, 0, width / 2.0], [0, f, height / 2.0], [0, 0, 1.0]])
-
-
-def rig_proj_to_cam(baseline: float, toe_in_distance: float) -> np.ndarray:
-    """[4, 4] projector->camera for a projector at (baseline, 0, 0) in camera coordinates,
-    yawed so its optical axis passes through (0, 0, toe_in_distance) (the object centre)."""
-    z = np.array([-baseline, 0.0, toe_in_distance])
-    z /= np.linalg.norm(z)
-    y = np.array([0.0, 1.0, 0.0])
-    x = np.cross(y, z)
-    T = np.eye(4)
-    T[:3, 0], T[:3, 1], T[:3, 2], T[:3, 3] = x, y, z, (baseline, 0.0, 0.0)
-    return T
-
-
 def orbit_poses(n: int, distance: float, seed: int = 0, elevation_deg=(10.0, 65.0)) -> list[np.ndarray]:
     """``n`` cam_to_world poses on the upper hemisphere (z up) at ``distance``, looking at 0.
 
@@ -202,7 +179,7 @@ def _is_previous_synth(out: Path) -> bool:
 
 def _check_out(out: Path) -> None:
     """Refuse an ``out`` holding anything but a previous synth output (before any rendering)."""
-    from .io import check_out_dir
+    from fastneus.io import check_out_dir
 
     check_out_dir(out)
     if out.is_dir() and any(out.iterdir()) and not _is_previous_synth(out):
@@ -250,7 +227,7 @@ def synthesize(out, shape: str | None = None, mesh=None, views: int = 20, size=(
         mesh: a mesh file path or a ``trimesh.Trimesh`` (exactly one of shape / mesh).
         views: number of viewpoints on the orbit (ignored when ``poses`` is given).
         size: camera image (width, height).
-        pattern: a pattern kind (``fastneus.patterns.KINDS``) or a uint8 [h, w, 3] RGB
+        pattern: a pattern kind (``fastneus.light.patterns.KINDS``) or a uint8 [h, w, 3] RGB
             array shown by every projector. Sequence kinds (graycode, phaseshift) make one
             frame per pattern per viewpoint, sharing the view id.
         illum: ``normal`` (ambient 1.0) or ``dark`` (ambient 0.1); ``ambient`` overrides.
@@ -266,7 +243,7 @@ def synthesize(out, shape: str | None = None, mesh=None, views: int = 20, size=(
         focal: camera focal length in pixels (default 1111.11 * width / 800).
         poses: explicit list of [4, 4] cam_to_world poses (overrides ``views``).
         normalise: centre and scale the mesh to a bounding-sphere radius of 1 m.
-        pattern_opts: extra options for :func:`fastneus.patterns.make_pattern`.
+        pattern_opts: extra options for :func:`fastneus.light.patterns.make_pattern`.
         light_dir: world direction toward the light of the Lambertian shading.
         contact_sheet: write ``contact_sheet.png`` (first frames, for a person to look at).
         progress: show a rich progress bar and print a summary.
@@ -276,7 +253,7 @@ def synthesize(out, shape: str | None = None, mesh=None, views: int = 20, size=(
             ``projector_blur=5`` in training. 0 = sharp.
         laser_planes: the projectors are laser line projectors defined by light planes
             (``Projector.planes``, the exact model): the planes of the ``crosslaser`` pattern's
-            lines (same seed per projector, :func:`fastneus.lasers.crosslaser_planes`), sheet
+            lines (same seed per projector, :func:`fastneus.light.lasers.crosslaser_planes`), sheet
             thickness = the line width at ``cam_distance``. Needs ``pattern="crosslaser"``.
         medium: ``air`` or ``water``: cameras and projectors sit behind flat ports
             (:data:`WATER_PORT`: 3 cm to the glass, 1 cm of glass, n = 1 / 1.5 / 1.333), rays
@@ -293,7 +270,7 @@ def synthesize(out, shape: str | None = None, mesh=None, views: int = 20, size=(
         The written :class:`Scene` (loaded back, so it is validated).
     """
     kwargs = {k: v for k, v in locals().items() if k not in ("threads", "out")}  # first: only the arguments
-    from .io import staged_output
+    from fastneus.io import staged_output
 
     out = Path(out)
     _check_out(out)
@@ -316,7 +293,7 @@ def _synthesize(out, shape, mesh, views, size, pattern, illum, albedo, noise, se
                 proj_size, proj_fov_deg, baselines, cam_distance, focal, poses, normalise, pattern_opts,
                 light_dir, contact_sheet, progress, projector_blur, laser_planes, medium) -> tuple:
     """Render into the fresh folder ``out`` (the staging folder); returns (seconds, stats, faces) for the summary."""
-    from .kernels.raycast import raycast_mesh
+    from fastneus.kernels.raycast import raycast_mesh
 
     t_start = time.perf_counter()
     out = Path(out)
@@ -357,7 +334,7 @@ def _synthesize(out, shape, mesh, views, size, pattern, illum, albedo, noise, se
     dev = torch.device(device)
     port_row_t = torch.tensor(port.row(), dtype=torch.float32, device=dev) if wet else None
     if wet:
-        from .kernels.project import port_dir_torch
+        from fastneus.kernels.project import port_dir_torch
 
     # ---- mesh
     if shape is not None:
@@ -390,7 +367,7 @@ def _synthesize(out, shape, mesh, views, size, pattern, illum, albedo, noise, se
     for p in projectors.values():
         p.port = port
     if laser_planes:
-        from .lasers import crosslaser_planes
+        from fastneus.light.lasers import crosslaser_planes
 
         if pattern != "crosslaser" or projector_blur > 0:
             raise FastneusError("laser planes replace the crosslaser pattern (and have no blur)", field="--laser-planes")
@@ -495,7 +472,7 @@ def _synthesize(out, shape, mesh, views, size, pattern, illum, albedo, noise, se
                 need = torch.zeros(P.shape[0], dtype=torch.bool, device=dev)
                 for j, shot in enumerate(shots):
                     if laser_planes:
-                        from .lasers import light_at_points
+                        from fastneus.light.lasers import light_at_points
 
                         q = light_at_points(P, w2p, projectors[p].planes).to(P.dtype)
                     else:
@@ -630,69 +607,3 @@ def _summary(scene: Scene, out: Path, seconds: float, stats, n_faces: int) -> No
                                f"{100 * np.mean(stats['lit']):.1f}% of them pattern-lit")
     t.add_row("time", f"{seconds:.1f} s")
     Console().print(t)
-
-
-# --------------------------------------------------------------------------- CLI
-def register(subparsers) -> None:
-    from .cli import add_device_arg
-
-    p = subparsers.add_parser("synth", help="render a synthetic structured-light scene",
-                              description="Render a mesh lit by projectors on a camera rig (the ActiveNeuS "
-                                          "protocol) into a fastneus scene folder with ground truth.")
-    src = p.add_mutually_exclusive_group(required=True)
-    src.add_argument("--mesh", help="mesh file (PLY/OBJ/STL/GLB...)")
-    src.add_argument("--shape", choices=SHAPES, help="built-in shape")
-    p.add_argument("--views", type=int, default=20, help="viewpoints (default 20; 1 = one-shot)")
-    p.add_argument("--size", default="800x800", help="image size WxH (default 800x800)")
-    p.add_argument("--pattern", default="crosslaser", choices=PATTERN_KINDS, help="pattern kind (default crosslaser)")
-    p.add_argument("--illum", default="normal", choices=list(ILLUMS), help="normal (ambient 1) or dark (0.1)")
-    p.add_argument("--ambient", type=float, default=None, help="override the ambient level")
-    p.add_argument("--albedo", default="procedural", choices=ALBEDOS)
-    p.add_argument("--noise", type=float, default=0.005, help="Gaussian noise sigma (default 0.005)")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--proj-size", default="1024x768", help="projector size WxH (default 1024x768)")
-    p.add_argument("--baselines", default=None,
-                   help="projector x offsets on the rig in metres, comma-separated (default: -0.6,-0.2,0.2,0.6 "
-                        "for one-shot patterns, 0.6 for sequences); '0.6' = the paper's one-projector pattern study")
-    p.add_argument("--medium", default="air", choices=("air", "water"),
-                   help="water: cameras and projectors behind flat ports, attenuation and back-scatter")
-    p.add_argument("--laser-planes", action="store_true",
-                   help="projectors are laser line projectors defined by light planes (the crosslaser lines)")
-    p.add_argument("--projector-blur", type=float, default=0.0, metavar="SIGMA",
-                   help="projector defocus: Gaussian sigma in projector pixels, 5x5 taps (default 0 = sharp)")
-    p.add_argument("--no-contact-sheet", action="store_true")
-    p.add_argument("--threads", type=int, default=1, help="torch CPU threads while rendering (default 1)")
-    add_device_arg(p)
-    p.add_argument("--out", required=True, help="output folder")
-    p.set_defaults(func=_run)
-
-
-def parse_baselines(text: str | None) -> tuple[float, ...] | None:
-    """``"-0.6,0.6"`` -> (-0.6, 0.6) metres; None stays None (the pattern's default rig)."""
-    if text is None:
-        return None
-    try:
-        vals = tuple(float(v) for v in str(text).split(",") if v.strip())
-    except ValueError:
-        raise FastneusError(f"expected comma-separated metres such as 0.6 or -0.2,0.2, got {text!r}",
-                            field="--baselines") from None
-    if not vals or len(vals) > 8 or not all(math.isfinite(v) and v != 0 for v in vals):
-        raise FastneusError("give 1 to 8 non-zero finite offsets (a projector on the camera centre "
-                            "cannot triangulate)", field="--baselines")
-    return vals
-
-
-def _run(args) -> int:
-    from .cli import resolve_device
-
-    device = resolve_device(args.device)
-    size = parse_size(args.size)
-    psize = parse_size(args.proj_size, field="--proj-size")
-    if args.mesh is not None and not Path(args.mesh).is_file():
-        raise FastneusError("mesh file not found", file=args.mesh, field="--mesh")
-    synthesize(args.out, shape=args.shape, mesh=args.mesh, views=args.views, size=size, pattern=args.pattern,
-               illum=args.illum, albedo=args.albedo, noise=args.noise, seed=args.seed, device=device,
-               ambient=args.ambient, proj_size=psize, contact_sheet=not args.no_contact_sheet,
-               threads=args.threads, baselines=parse_baselines(args.baselines), projector_blur=args.projector_blur,
-               laser_planes=args.laser_planes, medium=args.medium)
-    return 0

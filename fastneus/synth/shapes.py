@@ -9,7 +9,7 @@ from __future__ import annotations
 import numpy as np
 import trimesh
 
-from .errors import FastneusError
+from fastneus.errors import FastneusError
 
 SHAPES = ("sphere", "torus", "toy", "rock")
 

@@ -1,7 +1,7 @@
 """Geometry initialisation from the pattern itself: start the SDF at the decoded surface.
 
 When every training viewpoint holds a complete Gray-code sequence, the classical decoder
-(:mod:`fastneus.baselines.graycode`) gives a depth map per viewpoint in a fraction of a second.
+(:mod:`fastneus.classical.graycode`) gives a depth map per viewpoint in a fraction of a second.
 Fitting the SDF to those points first (zero at the points, positive just in front of them along
 the camera ray, negative just behind, unit gradient) replaces the sphere initialisation, so the
 photometric training refines a surface that is already right to a projector pixel instead of
@@ -10,12 +10,12 @@ from a sphere, and it would hide the fine levels the fit just set.
 
 One-shot runs (at most ``MAX_SWEEP_VIEWS`` viewpoints, every frame lit by a dense pattern such
 as the colourful lines) get the same from a plane sweep of each photo against its patterns
-(:mod:`fastneus.baselines.planesweep`): without it, one view of a striped pattern leaves the
+(:mod:`fastneus.classical.planesweep`): without it, one view of a striped pattern leaves the
 photometric optimisation free to settle a stripe away from the truth (the toy's torus at 3.7 %
 depth error).
 
 Thin coloured lines (cross lasers from image projectors) are no code, but along one camera ray
-only a few light sheets are crossed inside the bounds: :mod:`fastneus.baselines.laserlines`
+only a few light sheets are crossed inside the bounds: :mod:`fastneus.classical.laserlines`
 labels the lit pixels with their sheet (unique candidates, then by neighbours), and those points
 initialise the surface where the lines fall (2 or 3 viewpoints; one view's lines are too sparse).
 
@@ -30,16 +30,16 @@ import time
 import numpy as np
 import torch
 
+from fastneus.data.scene import view_frames
 from fastneus.errors import FastneusError
-from fastneus.projection import unit_sphere_chord
+from fastneus.geometry.projection import unit_sphere_chord
 from fastneus.train.adam import Adam
 
 
 def decodable_views(scene, frames: list[int]) -> list[list[int]] | None:
     """Frame indices per viewpoint when every viewpoint of ``frames`` is one projector's full
     Gray-code sequence (and nothing else), else None."""
-    from fastneus.export.depth import view_frames
-    from fastneus.patterns import gray_bits
+    from fastneus.light.patterns import gray_bits
 
     groups = list(view_frames(scene, frames).values())
     for g in groups:
@@ -62,7 +62,7 @@ def decoded_points(scene, groups: list[list[int]], max_free: int = 200_000) -> d
         directions, ``origins`` [N, 3] their camera centres; ``bg_origins`` / ``bg_dirs`` [M, 3] rays
         of background pixels (black in every shot: nothing there, the whole ray is free space).
     """
-    from fastneus.baselines.graycode import graycode_depth
+    from fastneus.classical.graycode import graycode_depth
 
     def views():
         for g in groups:
@@ -109,8 +109,6 @@ def _one_shot_frames(scene, frames: list[int], lit_by, min_views: int) -> list[i
     frame each (one-shot: a partial multi-shot sequence is no code frame by frame), no flat port
     (the sweeps' rays are straight; behind a port, underwater, they bend) and ``lit_by(scene, i)``
     holds for every frame, else None."""
-    from fastneus.export.depth import view_frames
-
     groups = view_frames(scene, frames)
     if not min_views <= len(groups) <= MAX_SWEEP_VIEWS or any(len(g) != 1 for g in groups.values()):
         return None
@@ -123,9 +121,9 @@ def _one_shot_frames(scene, frames: list[int], lit_by, min_views: int) -> list[i
 
 
 def sweepable_frames(scene, frames: list[int]) -> list[int] | None:
-    """:func:`_one_shot_frames` for a dense pattern (:func:`fastneus.baselines.planesweep.dense_pattern_frame`),
+    """:func:`_one_shot_frames` for a dense pattern (:func:`fastneus.classical.planesweep.dense_pattern_frame`),
     1 to ``MAX_SWEEP_VIEWS`` viewpoints."""
-    from fastneus.baselines.planesweep import dense_pattern_frame
+    from fastneus.classical.planesweep import dense_pattern_frame
 
     return _one_shot_frames(scene, frames, dense_pattern_frame, 1)
 
@@ -135,20 +133,20 @@ MIN_LINE_VIEWS = 2  # one view of labelled lines: H100 10 s 4.8 -> 7.3 % (CPU 6.
 
 def line_frames(scene, frames: list[int]) -> list[int] | None:
     """:func:`_one_shot_frames` for thin-line patterns (cross lasers from image projectors,
-    :func:`fastneus.baselines.laserlines.sparse_line_frame`), ``MIN_LINE_VIEWS`` to
+    :func:`fastneus.classical.laserlines.sparse_line_frame`), ``MIN_LINE_VIEWS`` to
     ``MAX_SWEEP_VIEWS`` viewpoints. With one view the labelled lines are a few curves; fitted alone
     they leave blobs between them, which the GPU's 10-s run does not recover from
     (docs/BENCHMARKS.md, issue 11)."""
-    from fastneus.baselines.laserlines import sparse_line_frame
+    from fastneus.classical.laserlines import sparse_line_frame
 
     return _one_shot_frames(scene, frames, sparse_line_frame, MIN_LINE_VIEWS)
 
 
 def lined_points(scene, frames: list[int], device="cpu", max_free: int = 200_000) -> dict[str, np.ndarray]:
     """:func:`decoded_points` for thin-line one-shot frames: the line-lit pixels labelled with their
-    light sheet (:func:`fastneus.baselines.laserlines.laser_line_depth`); background as
+    light sheet (:func:`fastneus.classical.laserlines.laser_line_depth`); background as
     :func:`swept_points`."""
-    from fastneus.baselines.laserlines import laser_line_depth
+    from fastneus.classical.laserlines import laser_line_depth
 
     def views():
         for i in frames:
@@ -175,7 +173,7 @@ def swept_points(scene, frames: list[int], device="cpu", max_free: int = 200_000
     """:func:`decoded_points` for one-shot frames: the surface from a plane sweep of each frame
     against its projected patterns; background rays from the mask (outside it) or, without one,
     from black pixels."""
-    from fastneus.baselines.planesweep import planesweep_depth
+    from fastneus.classical.planesweep import planesweep_depth
 
     def views():
         for i in frames:

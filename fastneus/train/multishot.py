@@ -17,7 +17,7 @@ import numpy as np
 import torch
 
 from fastneus.errors import FastneusError
-from fastneus.sampling import RayBank, _normalised_camera, draw_pixels
+from fastneus.train.rays import RayBank, normalised_camera, draw_pixels
 
 
 def group_views(scene, frames: list[int]) -> list[list[int]]:
@@ -48,7 +48,7 @@ def is_multishot(scene, frames: list[int]) -> bool:
 class ShotBank:
     """Training pixels grouped by viewpoint, each with the colours of all its shots (uint8).
 
-    Same interface as :class:`fastneus.sampling.RayBank` for the trainer (``sample``,
+    Same interface as :class:`fastneus.train.rays.RayBank` for the trainer (``sample``,
     ``mean_rgb``, ``bg_fraction``, ``has_masks``), but ``sample`` returns per ray a [n, k]
     frame index and [n, k, 3] colours.
 
@@ -76,7 +76,7 @@ class ShotBank:
         for g in self.groups:
             cam = scene.frame_camera(self.frames[g[0]])
             sizes.append((cam.width, cam.height))
-            ki, r, o = _normalised_camera(scene, self.frames[g[0]])
+            ki, r, o = normalised_camera(scene, self.frames[g[0]])
             kinv.append(ki)
             rot.append(r)
             org.append(o)

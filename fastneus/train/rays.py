@@ -16,7 +16,7 @@ from fastneus.errors import FastneusError
 from fastneus.kernels.render import PatternStore
 
 
-def _normalised_camera(scene, i: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def normalised_camera(scene, i: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(K^-1 [3,3], R_c2w [3,3], origin [3] in normalised space) of frame i."""
     cam = scene.frame_camera(i)
     c2w = np.asarray(scene.cam_to_world(i), dtype=np.float64)
@@ -34,12 +34,12 @@ class Projection:
         W: [F, P, 3, 4] normalised point -> projector camera coordinates.
         pattern: [F, P] int32 index into ``store`` (-1 = off).
         store: all distinct patterns, packed once.
-        blur: [P, n*n] per-projector pattern blur taps (fastneus.rig), None = plain sampling.
+        blur: [P, n*n] per-projector pattern blur taps (fastneus.train.rig), None = plain sampling.
         laser_on: [F, P] int32, 1 where projector k is a laser-plane projector lit in frame f
             (None: the scene has no laser projectors).
         planes: [P, L, 12] packed light planes (``fastneus.kernels.project.pack_planes``).
         port: [P, 8] flat ports of the projectors (flag column 0 = in air), None = none has one.
-        sigma: [3] attenuation of the projected light in the medium (fastneus.rig), None = none.
+        sigma: [3] attenuation of the projected light in the medium (fastneus.train.rig), None = none.
         has_pattern: some frame shows a pattern image (host-side: the renderer asks it every step,
             and asking ``pattern`` would sync with the device).
     """
@@ -127,7 +127,7 @@ class RayBank:
             h, w = img.shape[:2]
             sizes.append((w, h))
             chunks.append(torch.from_numpy(np.ascontiguousarray(img.reshape(-1, 3))))
-            ki, r, o = _normalised_camera(scene, i)
+            ki, r, o = normalised_camera(scene, i)
             kinv.append(ki)
             rot.append(r)
             org.append(o)
@@ -205,7 +205,7 @@ class RayBank:
         return self.origin[fidx].contiguous(), d.contiguous()
 
     def _refracted(self, fidx: torch.Tensor, d_cam: torch.Tensor):
-        from fastneus.projection import refract_rays
+        from fastneus.geometry.projection import refract_rays
 
         o = self.origin[fidx].clone()
         d = torch.einsum("bij,bj->bi", self.rot[fidx], d_cam)

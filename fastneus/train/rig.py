@@ -1,7 +1,7 @@
 """What a real rig gets wrong, learned during training: pose corrections of cameras and
 projectors, a per-projector pattern blur (defocus), and the water medium (attenuation and
 back-scatter; the flat-port refraction itself is geometry from the scene, applied in
-``fastneus.sampling``).
+``fastneus.train.rays``).
 
 The trainer owns one :class:`Rig`. It is inert unless a config key turns a part on
 (``pose_refine``, ``projector_blur``, ``medium``), so the default step is unchanged. Hooks, all cheap when off:
@@ -89,8 +89,8 @@ class Rig(torch.nn.Module):
     Args:
         scene: the loaded scene.
         frames: training frame indices (rows of the ray bank and of ``proj``).
-        bank: the trainer's :class:`fastneus.sampling.RayBank` (camera rotations per row).
-        proj: the trainer's :class:`fastneus.sampling.Projection` (uncorrected).
+        bank: the trainer's :class:`fastneus.train.rays.RayBank` (camera rotations per row).
+        proj: the trainer's :class:`fastneus.train.rays.Projection` (uncorrected).
         cfg: run config (``pose_refine``, ``pose_anchor``, ``lr_pose``, ``pose_warmup_frac``).
         device: torch device.
     """

@@ -16,17 +16,17 @@ from fastneus.config import Config, config_from_dict, save_config
 from fastneus.errors import FastneusError
 from fastneus.field.model import SDFField
 from fastneus.field.renderer import render_rays
-from fastneus.geometry_init import fit_batch
+from fastneus.train.geometry_init import fit_batch
 from fastneus.io import open_append
 from fastneus.kernels.occupancy import OccupancyGrid
 from fastneus.train.checkpoint import CKPT_NAME, load_checkpoint, restore, save_checkpoint  # noqa: F401 (re-export)
 from fastneus.train.adam import Adam
 from fastneus.train.guard import finite_step
-from fastneus.multishot import make_bank
-from fastneus.rig import Rig
-from fastneus.rig import load_into as rig_load
-from fastneus.rig import state_of as rig_state
-from fastneus.sampling import build_projection
+from fastneus.train.multishot import make_bank
+from fastneus.train.rig import Rig
+from fastneus.train.rig import load_into as rig_load
+from fastneus.train.rig import state_of as rig_state
+from fastneus.train.rays import build_projection
 
 
 def resolve_masks(scene, frames: list[int], cfg: Config) -> tuple[bool, str]:
@@ -106,7 +106,7 @@ class Trainer:
             raise FastneusError(f"frame indices {bad or '[]'} out of range 0..{n - 1}", field="frames")
         self.masks_used, self.masks_note = resolve_masks(scene, self.frames, cfg)
         want_bg = not self.masks_used and cfg.bg_prior != "off" and cfg.bg_weight > 0
-        # multi-shot viewpoints (e.g. Gray code) share one ray per pixel across their shots (fastneus.multishot)
+        # multi-shot viewpoints (e.g. Gray code) share one ray per pixel across their shots (fastneus.train.multishot)
         self.bank = make_bank(scene, self.frames, self.device, cfg, load_masks=self.masks_used,
                               brightness_cdf=cfg.bright_fraction > 0,
                               background=cfg.background if want_bg else None, bg_tolerance=cfg.bg_tolerance,
@@ -122,7 +122,7 @@ class Trainer:
         self.on_saved = None  # called after each checkpoint write (pipeline.train_scene)
         self.seen = None
         if cfg.min_views > 0:
-            from fastneus.visibility import seen_cells
+            from fastneus.train.visibility import seen_cells
 
             self.seen = seen_cells(scene, self.frames, cfg.occ_resolution, self.device, cfg.min_views)
             self.grid.set_allowed(self.seen)
@@ -243,7 +243,7 @@ class Trainer:
         self.empty_steps = 0
         # the camera clips at 1: a rendered value above it is a saturated pixel, not an error
         # (unclipped, bright pattern pixels would pull i_r down on Normal-light scenes)
-        # [B, 3], or [B, K, 3] with K shots per ray (multi-shot); + water (fastneus.rig)
+        # [B, 3], or [B, K, 3] with K shots per ray (multi-shot); + water (fastneus.train.rig)
         pred = self.rig.composite(out["color"], out, c.background).clamp(max=1.0)
         err = (pred - batch["rgb"]).abs()
         loss_rgb = err.mean()
@@ -295,7 +295,7 @@ class Trainer:
         kern: dict = {}
         t_kernels = self.prime(report=kern)
         t_save = 0.0
-        from fastneus.geometry_init import initialise_geometry
+        from fastneus.train.geometry_init import initialise_geometry
 
         t0 = time.perf_counter()
         note = initialise_geometry(self)  # e.g. from decoded Gray code; its time counts as training
