@@ -16,4 +16,12 @@ class FastneusError(Exception):
         self.file = str(file) if file is not None else None
         self.field = field
         where = ": ".join(p for p in (self.file, self.field) if p)
-        super().__init__(f"{where}: {message}" if where else message)
+        super().__init__(_one_line(f"{where}: {message}" if where else message))
+
+
+def _one_line(text: str) -> str:
+    """Escape line breaks and other unprintable characters (a file name or key from the input may
+    hold them): the CLI prints every error as exactly one line."""
+    if text.isprintable():
+        return text
+    return "".join(c if c.isprintable() or c == "\t" else repr(c)[1:-1] for c in text)

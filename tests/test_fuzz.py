@@ -201,3 +201,14 @@ def test_scene_key_with_line_break_is_one_line(fuzz, where):
     d["frames"][0].setdefault(where, {})["line\nbreak"] = {} if where == "projectors" else "x.npy"
     msg = fz.check_case(fuzz, fz.Case("scene", {"scene.json": json.dumps(d).encode()}))
     assert f"frames[0].{where}.'line\\nbreak'" in msg
+
+
+def test_any_error_is_one_line(fuzz):
+    """A path from the input holding a line break (a NeRF pattern path here) was printed as is, splitting
+    the error; FastneusError now escapes line breaks and unprintable characters wherever they come from."""
+    d = json.loads(json.dumps(fuzz.transforms))
+    d["frames"][0]["projectors"] = {"proj0": "pat\r\nx\x85.png"}
+    msg = fz.check_case(fuzz, fz.Case("nerf", {"transforms.json": json.dumps(d).encode()}))
+    assert "file not found" in msg and "pat\\r\\nx\\x85.png" in msg
+    e = FastneusError("bad\nvalue \u2028", file="a\nb.json", field="k\r")
+    assert len(str(e).splitlines()) == 1 and e.file == "a\nb.json"
