@@ -464,7 +464,7 @@ def test_exif_orientation_is_ignored_with_a_warning(small_scene, tmp_path, capsy
     """A photo tagged "rotate 90" is read as stored (as the size check, the masks and the intrinsics
     see it), and one warning line names the file."""
     from fastneus.data import Scene
-    from fastneus.data.scene import exif_orientation
+    from fastneus.data.images import exif_orientation
 
     d = tmp_path / "s"
     shutil.copytree(small_scene, d)

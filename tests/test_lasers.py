@@ -11,7 +11,7 @@ import pytest
 import torch
 
 from fastneus.data import Scene
-from fastneus.data.scene import LaserPlane
+from fastneus.data.model import LaserPlane
 from fastneus.errors import FastneusError
 from fastneus.kernels.project import laser_light, laser_light_torch, pack_planes
 from test_render import DEVICES, _close, _seed, make_inputs
@@ -264,7 +264,7 @@ def test_import_calib_laser_plane_file(tmp_path):
     poses = {"frames": [{"cam_to_world": np.eye(4).tolist()}, {"cam_to_world": np.eye(4).tolist()}],
              "bounds": {"center": [0, 0, 1], "radius": 0.5}}
     (tmp_path / "poses.json").write_text(json.dumps(poses))
-    from fastneus.data.scene import Camera
+    from fastneus.data.model import Camera
 
     cam = Camera(id="cam0", K=np.array([[20.0, 0, 12], [0, 20, 8], [0, 0, 1]]), width=24, height=16)
     s = make_scene_from_calibration((cam, None), sorted((tmp_path / "img").iterdir()), [], tmp_path / "poses.json",

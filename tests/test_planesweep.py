@@ -41,7 +41,7 @@ def test_dense_frames_and_the_auto_rule(colorline_scene, tmp_path):
     assert sweepable_frames(colorline_scene, [0, 1]) == [0, 1]
     import copy
 
-    from fastneus.data.scene import FlatPort
+    from fastneus.data.model import FlatPort
 
     wet = copy.deepcopy(colorline_scene)  # behind a flat port the sweep's straight rays would be wrong
     cam = wet.frame_camera(0)

@@ -140,7 +140,7 @@ def test_activeneus_refraction_keys_round_trip(tmp_path):
     """Thin ports go to / come from the format's camera_refraction / projector_refraction."""
     import copy
 
-    from fastneus.data.scene import FlatPort
+    from fastneus.data.model import FlatPort
     from fastneus.formats.activeneus import read_activeneus, write_activeneus
 
     s = _water_scene(tmp_path, views=1, size=(16, 16))

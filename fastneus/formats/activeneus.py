@@ -27,10 +27,12 @@ from typing import Any
 
 import numpy as np
 
-from fastneus.data.scene import (FORMAT, VERSION, Scene, check_faces_bounds, check_intrinsics, check_pose, image_size,
-                                 rigid_inverse)
+from fastneus.data.images import image_size
+from fastneus.data.scene import FORMAT, VERSION, Scene
+from fastneus.data.validate import check_faces_bounds, check_intrinsics, check_pose
 from fastneus.errors import FastneusError
 from fastneus.formats.safe_npz import npz_array, open_npz, read_number_dict, read_pickled_value
+from fastneus.geometry.cameras import rigid_inverse
 
 NPZ = "cameras_sphere.npz"
 IMG_EXT = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")

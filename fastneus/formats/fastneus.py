@@ -10,7 +10,7 @@ import shutil
 from pathlib import Path
 
 from fastneus.data import Scene
-from fastneus.data.scene import check_id
+from fastneus.data.validate import check_id
 from fastneus.errors import FastneusError
 from fastneus.io import safe_dest, staged_output
 
@@ -20,7 +20,7 @@ def write_fastneus(scene, out: str | os.PathLike):
 
     Files are copied byte for byte (no re-encoding, so nothing is lost); camera
     distortion stays in the scene. Copies are named by frame index, or by pattern id (a
-    safe id, :data:`fastneus.data.scene.SAFE_ID`), and every destination is checked to lie
+    safe id, :data:`fastneus.data.validate.SAFE_ID`), and every destination is checked to lie
     inside ``out``. Built aside and swapped in (:func:`fastneus.io.staged_output`): files in
     ``out`` that fastneus did not write are never replaced or removed.
     Returns the saved, re-loaded :class:`Scene`.

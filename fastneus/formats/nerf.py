@@ -50,7 +50,10 @@ from typing import Any
 
 import numpy as np
 
-from fastneus.data.scene import FORMAT, MAX_SIDE, VERSION, Scene, image_size, load_json, parse_port, port_to_dict
+from fastneus.data.images import image_size
+from fastneus.data.model import parse_port, port_to_dict
+from fastneus.data.scene import FORMAT, VERSION, Scene
+from fastneus.data.validate import MAX_SIDE, load_json
 from fastneus.errors import FastneusError
 
 NAME = "transforms.json"
@@ -295,7 +298,7 @@ def write_nerf(scene: Scene, out: str | os.PathLike, copy_files: bool = True) ->
 
 
 def _write_nerf(scene: Scene, stage: Path, final: Path, copy_files: bool) -> None:
-    from fastneus.data.scene import check_id
+    from fastneus.data.validate import check_id
     from fastneus.io import safe_dest
 
     out = stage

@@ -14,7 +14,8 @@ from pathlib import Path
 
 import numpy as np
 
-from fastneus.data.scene import FORMAT, VERSION, Scene, image_size
+from fastneus.data.images import image_size
+from fastneus.data.scene import FORMAT, VERSION, Scene
 from fastneus.errors import FastneusError
 from fastneus.formats.activeneus import NPZ, npz_matrix, group_equal, image_files, rel_posix, open_npz_folder
 from fastneus.formats.safe_npz import npz_array

@@ -32,9 +32,13 @@ from typing import Sequence
 
 import numpy as np
 
-from fastneus.data.scene import (FORMAT, MAX_SIDE, VERSION, Camera, Projector, Scene, check_bounds_scale,
-                                 check_faces_bounds, check_pose, check_principal_point, image_size, load_json, planes_to_list, rigid_inverse)
+from fastneus.data.images import image_size
+from fastneus.data.model import Camera, Projector, planes_to_list
+from fastneus.data.scene import FORMAT, VERSION, Scene
+from fastneus.data.validate import (MAX_SIDE, check_bounds_scale, check_faces_bounds, check_pose, check_principal_point,
+                                    load_json)
 from fastneus.errors import FastneusError
+from fastneus.geometry.cameras import rigid_inverse
 from fastneus.io import staged_output
 
 # layout name -> (cam K, cam dist, proj K, proj dist, R candidates, T)

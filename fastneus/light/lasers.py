@@ -1,7 +1,7 @@
 """Laser-plane projectors: planes from a cross-laser layout, the plane calibration file read
 by ``import-calib --laser-planes``, and the pattern-image approximation of a laser scene.
 
-A laser line projector is calibrated as light planes (``fastneus.data.scene.LaserPlane``):
+A laser line projector is calibrated as light planes (``fastneus.data.model.LaserPlane``):
 unit normal n and offset d with n . X = d in the projector's frame, sheet thickness (FWHM,
 world units), fan angle and fan axis, colour. fastneus evaluates the light of a point from
 its distance to each plane (``fastneus.kernels.project.laser_light``), with no pattern image.
@@ -27,7 +27,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from fastneus.data.scene import LaserPlane, Projector, parse_planes
+from fastneus.data.model import LaserPlane, Projector, parse_planes
 from fastneus.errors import FastneusError
 
 UNITS = {"mm": 1e-3, "cm": 1e-2, "m": 1.0}
@@ -95,9 +95,11 @@ def pattern_approximation(scene, out, width: int, height: int, hfov_deg: float, 
     approximation a pattern-only tool must use. Saved in ``out`` (images shared by path).
 
     Pattern files are named ``patterns/<projector id>_planes.png``; the id must be a safe id
-    (:data:`fastneus.data.scene.SAFE_ID`) and each destination is checked to lie inside ``out``.
+    (:data:`fastneus.data.validate.SAFE_ID`) and each destination is checked to lie inside ``out``.
     """
-    from fastneus.data.scene import Pattern, Scene, check_id
+    from fastneus.data.model import Pattern
+    from fastneus.data.scene import Scene
+    from fastneus.data.validate import check_id
     from fastneus.io import safe_dest
     from fastneus.light.patterns import write_png
     from fastneus.geometry.cameras import projector_intrinsics
@@ -137,7 +139,7 @@ def read_laser_planes(path, units: str = "mm") -> dict[str, Projector]:
     """
     import yaml
 
-    from fastneus.data.scene import check_id, check_pose
+    from fastneus.data.validate import check_id, check_pose
 
     path = Path(path)
     if not path.is_file():

@@ -22,8 +22,8 @@ import numpy as np
 import torch
 import trimesh
 
-from fastneus.data.scene import (Bounds, Camera, FlatPort, Frame, FrameProjector, Illumination, Pattern, Projector,
-                                 Scene)
+from fastneus.data.model import Bounds, Camera, FlatPort, Frame, FrameProjector, Illumination, Pattern, Projector
+from fastneus.data.scene import Scene
 from fastneus.errors import FastneusError
 from fastneus.geometry.cameras import camera_intrinsics, look_at, projector_intrinsics, rig_proj_to_cam
 from fastneus.light.patterns import KINDS as PATTERN_KINDS
