@@ -6,20 +6,20 @@ import warnings
 from pathlib import Path
 
 from fastneus.errors import FastneusError
-
-TARGETS = ("fastneus", "activeneus", "nerf")
+from fastneus.formats.detect import load_scene
+from fastneus.formats.registry import get_format, writable
 
 
 def _convert(args) -> int:
-    from fastneus.formats.detect import load_scene
     from fastneus.io import check_out_dir
 
     check_out_dir(args.out)
     if args.downscale < 1:
         raise FastneusError(f"must be an integer >= 1, got {args.downscale}", field="--downscale")
+    fmt = get_format(args.to)
     scene = load_scene(args.scene)
     small = [c for c in scene.cameras.values() if min(c.width, c.height) < args.downscale]
-    if args.to == "activeneus" and small:
+    if "downscale" in fmt.writer_options and small:
         c = small[0]
         raise FastneusError(f"{args.downscale} shrinks camera {c.id}'s {c.width}x{c.height} images to nothing "
                             f"(at most {min(c.width, c.height)})", field="--downscale")
@@ -27,18 +27,7 @@ def _convert(args) -> int:
         raise FastneusError("output folder is the input folder; choose another --out", file=args.out, field="--out")
     # each writer builds aside and swaps in at the end (fastneus.io.staged_output): an unreadable image
     # found half-way leaves --out as it was, and files there that fastneus did not write are never touched
-    if args.to == "fastneus":
-        from fastneus.formats.fastneus import write_fastneus
-
-        write_fastneus(scene, args.out)
-    elif args.to == "nerf":
-        from fastneus.formats.nerf import write_nerf
-
-        write_nerf(scene, args.out)
-    else:
-        from fastneus.formats.activeneus import write_activeneus
-
-        write_activeneus(scene, args.out, downscale=args.downscale)
+    fmt.write(scene, args.out, **{k: getattr(args, k) for k in fmt.writer_options})
     print(f"wrote {args.to} scene with {len(scene.frames)} frames -> {args.out}")
     return 0
 
@@ -94,7 +83,7 @@ def register(subparsers) -> None:
     p = subparsers.add_parser("convert", help="convert a scene between formats (fastneus, ActiveNeuS, NeRF transforms.json; reads NeuS too)",
                               description="Read a scene of any supported format and write it as TO.")
     p.add_argument("scene", help="scene folder (fastneus, ActiveNeuS, NeuS or NeRF transforms.json)")
-    p.add_argument("--to", required=True, choices=TARGETS)
+    p.add_argument("--to", required=True, choices=writable())
     p.add_argument("--out", required=True, help="output folder")
     p.add_argument("--downscale", type=int, default=1, help="activeneus target: shrink images by this factor")
     p.set_defaults(func=_convert)
