@@ -1,6 +1,12 @@
-"""Training configuration: one dataclass holds every default; YAML presets and
-``key=value`` overrides layer on top (in that order). The resolved config is saved
-with each run, so a run can always be reproduced.
+"""Run configuration: a nested, frozen dataclass with one section per component.
+
+Every knob is declared once, with its default, allowed range and one line of help
+(:func:`knob`); ``fastneus config`` lists them and :func:`validate` is generated from the
+same declarations. Layers, in order: defaults <- preset / YAML file <- verb defaults <-
+``key=value`` overrides. Keys are ``section.name`` (``optim.lr=5e-3``); a bare name is
+accepted too since every name is unique across sections (``lr=5e-3``). Saved configs of
+earlier versions (flat keys, schedules in steps) still load, translated, with a note.
+Components receive only their section (``SDFField(cfg.hashgrid, cfg.network)``).
 """
 from __future__ import annotations
 
@@ -8,6 +14,7 @@ import dataclasses
 import math
 import os
 import re
+import sys
 from dataclasses import dataclass, field, fields
 from importlib import resources
 from pathlib import Path
@@ -15,226 +22,286 @@ from typing import Any
 
 import yaml
 
-from .errors import FastneusError
+from fastneus.errors import FastneusError
+
+_NOTED: set[str] = set()
 
 
-@dataclass
+def _note(msg: str) -> None:
+    """One stderr line per distinct message (translations of old keys)."""
+    if msg not in _NOTED:
+        _NOTED.add(msg)
+        print(f"note: {msg}", file=sys.stderr)
+
+
+def knob(default: Any, help: str, *, lo: float | None = None, hi: float | None = None, lo_open: bool = False,
+         choices: tuple | None = None, model: bool = False) -> Any:
+    """A config field with its metadata.
+
+    Args:
+        default: the default value (a list default is copied per instance).
+        help: one line shown by ``fastneus config``.
+        lo, hi: inclusive bounds (``lo_open``: ``lo`` itself is excluded).
+        choices: the allowed values of a string/int knob.
+        model: the knob shapes the trained model (``--resume`` refuses to change it).
+    """
+    meta = {"help": help, "lo": lo, "hi": hi, "lo_open": lo_open, "choices": choices, "model": model}
+    if isinstance(default, list):
+        return field(default_factory=lambda: list(default), metadata=meta)
+    return field(default=default, metadata=meta)
+
+
+FRAC = {"lo": 0.0, "hi": 1.0}  # a fraction of the run
+_INT_MAX = 2 ** 31 - 1  # every integer knob (but seed) fits int32: kernels, torch and numpy take it as one
+
+
+@dataclass(frozen=True)
+class RunSection:
+    """What runs, how long, and on what."""
+
+    preset: str = knob("fewview", "name of the preset this config came from (informational)")
+    backend: str = knob("warp", "kernel backend: warp, or torch (the pure-torch twins, for comparison)",
+                        choices=("warp", "torch"))
+    pattern_pass: str = knob("auto", "sample patterns per sample: fused | split | auto (split on CUDA)",
+                             choices=("auto", "fused", "split"))
+    seed: int = knob(0, "random seed (numpy's range)", lo=0, hi=2 ** 32 - 1)
+    threads: int = knob(0, "CPU threads for kernels and torch (0 = FASTNEUS_THREADS, else every CPU); --threads",
+                        lo=0, hi=4096)
+    steps: int = knob(3000, "optimisation steps (the run's length when time_budget is 0)", lo=1)
+    time_budget: float = knob(0.0, "seconds of training; > 0 makes it the run's length (steps ignored)",
+                              lo=0.0)
+    frames: list[int] | None = knob(None, "frames to train on (null = all)", model=True)
+    log_every: int = knob(50, "steps between log.jsonl records", lo=1)
+    save_every: int = knob(1000, "checkpoint period in steps (the last step always saves)", lo=1)
+
+
+@dataclass(frozen=True)
+class RaysSection:
+    """Which pixels become rays each step, and how rays are marched."""
+
+    target_samples: int = knob(2 ** 18, "samples per step; the ray count adapts to hit it", lo=1)
+    init_rays: int = knob(2048, "rays of the first step", lo=1)
+    min_rays: int = knob(256, "fewest rays per step", lo=1)
+    max_rays: int = knob(2 ** 16, "most rays per step", lo=1)
+    march_step: float = knob(math.sqrt(3) * 2 / 1024, "ray-marching step (normalised units)", lo=0.0, lo_open=True)
+    max_samples_per_ray: int = knob(1024, "cap on samples per ray", lo=1)
+    bound: str = knob("sphere", "region of interest in normalised space: sphere | box", choices=("sphere", "box"),
+                      model=True)
+    background: float = knob(0.0, "background colour behind the object (synthetic data: black)", lo=0.0, hi=1.0)
+    bright_fraction: float = knob(0.5, "share of rays drawn in proportion to pixel brightness (sparse laser lines)",
+                                  **FRAC)
+    group_shots: bool = knob(True, "multi-shot: one ray per viewpoint pixel carries its shots (false = separate)")
+    shots_per_ray: int = knob(4, "multi-shot: shots rendered per ray and step, drawn at random (0 = all)",
+                              lo=0)
+
+
+@dataclass(frozen=True)
+class OccupancySection:
+    """The occupancy grid that skips empty space."""
+
+    occ_resolution: int = knob(128, "cells per side", lo=1, hi=1024, model=True)
+    occ_update_every: int = knob(16, "steps between grid updates", lo=1)
+    occ_warmup_frac: float = knob(0.2, "every cell occupied for this fraction of the run", **FRAC)
+    occ_threshold: float = knob(0.01, "opacity above which a cell is occupied", lo=0.0)
+    min_views: int = knob(2, "space seen by fewer distinct viewpoints is never occupied (0 = off)", lo=0)
+
+
+@dataclass(frozen=True)
+class HashGridSection:
+    """The multiresolution hash encoding of the SDF."""
+
+    levels: int = knob(16, "resolution levels", lo=1, hi=64, model=True)
+    features: int = knob(2, "features per level (the hash kernels' limit: 8)", lo=1, hi=8, model=True)
+    log2_table: int = knob(19, "log2 of the table entries per level (the kernels' limit: 30)", lo=1, hi=30, model=True)
+    base_res: int = knob(16, "resolution of the coarsest level", lo=1, model=True)
+    finest_res: int = knob(2048, "resolution of the finest level", lo=1, model=True)
+    c2f_start_levels: int = knob(4, "coarse-to-fine: active levels at the start (0 = all)", lo=0)
+    c2f_frac: float = knob(0.4, "... rising linearly to all levels at this fraction of the run", **FRAC)
+
+
+@dataclass(frozen=True)
+class NetworkSection:
+    """The SDF and colour MLPs and the NeuS sharpness."""
+
+    sdf_hidden: int = knob(64, "SDF MLP width", lo=1, model=True)
+    sdf_layers: int = knob(1, "SDF MLP hidden layers", lo=0, hi=16, model=True)
+    geo_features: int = knob(15, "geometry features passed from the SDF to the colour MLP", lo=1, hi=4096,
+                             model=True)
+    color_hidden: int = knob(64, "colour MLP width", lo=1, model=True)
+    color_layers: int = knob(2, "colour MLP hidden layers", lo=0, hi=16, model=True)
+    view_dependent: bool = knob(True, "the colour MLP sees the view direction", model=True)
+    init_radius: float = knob(0.5, "radius of the initial SDF sphere (normalised units)", lo=0.0, hi=1.0, lo_open=True)
+    variance_init: float = knob(0.3, "initial NeuS sharpness: inv_s = exp(10 v), inside its clamp [1e-3, 1e6]",
+                                lo=round(math.log(1e-3) / 10, 4), hi=round(math.log(1e6) / 10, 4))
+    inv_s_floor_end: float = knob(1000.0, "inv_s floor at the end of its ramp (0 = learned only)", lo=0.0, hi=1e6)
+    inv_s_floor_start: float = knob(20.0, "inv_s floor at the start of its ramp", lo=0.0, hi=1e6, lo_open=True)
+    inv_s_floor_frac: float = knob(0.6, "the floor rises log-linearly over this fraction of the run", **FRAC)
+    normal_eps_min: float = knob(1e-3, "lower bound of the finite-difference step (normalised)", lo=0.0,
+                                 lo_open=True)
+    sdf_grad: str = knob("analytic", "SDF gradient: analytic (hash d/dx from one kernel) | fd (4-tap tetrahedron)",
+                         choices=("analytic", "fd"))
+
+
+@dataclass(frozen=True)
+class OptimSection:
+    """Adam and the learning-rate schedule."""
+
+    lr: float = knob(1e-2, "learning rate of the hash grid and MLPs", lo=0.0, lo_open=True)
+    lr_variance: float = knob(5e-3, "learning rate of the NeuS variance (0 = frozen)", lo=0.0)
+    lr_illum: float = knob(3e-2, "learning rate of log(i_r), log(i_b) (0 = frozen)", lo=0.0)
+    adam_eps: float = knob(1e-15, "Adam epsilon", lo=0.0, lo_open=True)
+    warmup_frac: float = knob(0.03, "linear lr warm-up (fraction of the run)", **FRAC)
+    color_warmup_frac: float = knob(0.03, "geometry frozen while the colour net fits the brightness", **FRAC)
+    decay_to: float = knob(0.05, "final lr factor (cosine decay after warm-up)", lo=0.0, hi=1.0, lo_open=True)
+
+
+@dataclass(frozen=True)
+class LossSection:
+    """The loss terms and their weights (fastneus/train/losses.py)."""
+
+    eikonal_weight: float = knob(0.1, "eikonal term weight (0 = off)", lo=0.0)
+    masks: str = knob("auto", "mask BCE: auto (on when every training frame has a mask) | on | off",
+                      choices=("auto", "on", "off"))
+    mask_weight: float = knob(0.1, "mask BCE weight (0 = off)", lo=0.0)
+    curvature_weight: float = knob(0.0, "smoothness prior |f(x+e) + f(x-e) - 2 f(x)| (oneshot; 0 = off)", lo=0.0)
+    cos_anneal_frac: float = knob(0.15, "NeuS cos-anneal ratio 0 -> 1 over this fraction of the run", **FRAC)
+    bg_prior: str = knob("auto", "background pixels are free space without masks: auto (>= 5 % of pixels) | on | off",
+                         choices=("auto", "on", "off"))
+    bg_weight: float = knob(0.1, "weight of the background prior", lo=0.0)
+    bg_start_frac: float = knob(0.2, "the background prior ramps in from this fraction of the run to twice it", **FRAC)
+    bg_tolerance: float = knob(0.008, "per-channel distance to `background` still counted as it", lo=0.0)
+
+
+@dataclass(frozen=True)
+class IllumSection:
+    """The projected-light model: whether it is used and how i_r, i_b are learned."""
+
+    use_pattern: bool = knob(True, "false = passive NeuS (no projected pattern in the model)", model=True)
+    learn_illum: bool = knob(True, "learn i_r (reflectance) and i_b (bias)")
+    illum_warmup_frac: float = knob(0.15, "i_r, i_b frozen for this fraction of the run", **FRAC)
+    illum_init: str = knob("scene", "start i_r, i_b at the scene's values | ones", choices=("scene", "ones"))
+
+
+@dataclass(frozen=True)
+class InitSection:
+    """Geometry initialisation from decoded / swept surfaces, and its prior."""
+
+    init_geometry: str = knob("auto", "auto | decode | sphere: start the SDF at a decoded or swept surface",
+                              choices=("auto", "decode", "sphere"))
+    init_geometry_steps: int = knob(100, "SDF fit steps of that initialisation (counted in the training time)",
+                                    lo=1)
+    prior_weight: float = knob(3.0, "weight of the decoded points as a prior afterwards (0 = off)", lo=0.0)
+    prior_frac: float = knob(2.0, "the prior fades linearly toward 0 at this fraction of the run (2 = half left)",
+                             lo=0.0, lo_open=True)
+
+
+@dataclass(frozen=True)
+class RigSection:
+    """Learned corrections of a real rig (docs/REAL-RIGS.md); every part off by default."""
+
+    pose_refine: bool = knob(False, "learn an SE(3) correction per viewpoint camera and per projector", model=True)
+    pose_anchor: bool = knob(True, "the first training viewpoint's camera stays fixed (world frame)", model=True)
+    pose_fix_scale: bool = knob(True, "with the anchor, hold the rig's global scale")
+    lr_pose: float = knob(2e-4, "learning rate of the pose corrections (radians, normalised units)", lo=0.0, lo_open=True)
+    pose_warmup_frac: float = knob(0.1, "corrections frozen for this fraction of the run", **FRAC)
+    projector_blur: int = knob(0, "learned n x n blur of each projector's pattern (0 = off; odd n <= 7)",
+                               choices=(0, 1, 3, 5, 7), model=True)
+    lr_blur: float = knob(5e-3, "learning rate of the blur kernels", lo=0.0, lo_open=True)
+    blur_warmup_frac: float = knob(0.1, "blur kernels frozen for this fraction of the run", **FRAC)
+    refraction: bool = knob(True, "use the scene's flat ports (underwater housings)", model=True)
+    medium: str = knob("auto", "learned water attenuation + back-scatter: auto (on with a port) | on | off",
+                       choices=("auto", "on", "off"), model=True)
+    lr_medium: float = knob(1e-2, "learning rate of the medium coefficients", lo=0.0, lo_open=True)
+    medium_far: float = knob(20.0, "range (world units) of rays that hit nothing", lo=0.0, lo_open=True)
+
+
+@dataclass(frozen=True)
+class ExportSection:
+    """What is written after training."""
+
+    mesh_resolution: int = knob(256, "marching-cubes grid resolution (checked before training)", lo=2, hi=4096)
+
+
+SECTIONS: dict[str, type] = {
+    "run": RunSection, "rays": RaysSection, "occupancy": OccupancySection, "hashgrid": HashGridSection,
+    "network": NetworkSection, "optim": OptimSection, "loss": LossSection, "illum": IllumSection, "init": InitSection,
+    "rig": RigSection, "export": ExportSection,
+}
+
+
+@dataclass(frozen=True)
 class Config:
-    """All knobs of a fastneus run (defaults = the GPU few-view preset)."""
+    """All knobs of a fastneus run (defaults = the GPU few-view preset), one section per component."""
 
-    # --- run ---
-    preset: str = "fewview"            # name of the preset this config came from (informational)
-    backend: str = "warp"              # kernel backend: warp | torch (the twins; for comparison)
-    pattern_pass: str = "auto"         # fused | split | auto (split on CUDA): sample the patterns per sample
-    seed: int = 0
-    threads: int = 0                   # CPU threads for the Warp kernels and torch (0 = auto: FASTNEUS_THREADS,
-                                       # else every CPU this process may run on); --threads on the CLI
-    steps: int = 3000                  # optimisation steps (the run's length when time_budget is 0)
-    time_budget: float = 0.0           # seconds of training; when > 0 it is the run's length (steps ignored)
-                                       # and every schedule below is a fraction of it
-    frames: list[int] | None = None    # frames to train on (None = all)
-    log_every: int = 50
-    save_every: int = 1000             # checkpoint period (steps); the last step always saves
+    run: RunSection = field(default_factory=RunSection)
+    rays: RaysSection = field(default_factory=RaysSection)
+    occupancy: OccupancySection = field(default_factory=OccupancySection)
+    hashgrid: HashGridSection = field(default_factory=HashGridSection)
+    network: NetworkSection = field(default_factory=NetworkSection)
+    optim: OptimSection = field(default_factory=OptimSection)
+    loss: LossSection = field(default_factory=LossSection)
+    illum: IllumSection = field(default_factory=IllumSection)
+    init: InitSection = field(default_factory=InitSection)
+    rig: RigSection = field(default_factory=RigSection)
+    export: ExportSection = field(default_factory=ExportSection)
 
-    # --- rays and samples ---
-    target_samples: int = 2 ** 18      # samples per step; the ray count adapts to hit it
-    init_rays: int = 2048
-    min_rays: int = 256
-    max_rays: int = 2 ** 16
-    march_step: float = math.sqrt(3) * 2 / 1024   # normalised units
-    max_samples_per_ray: int = 1024
-    bound: str = "sphere"              # sphere | box
-    background: float = 0.0            # background colour behind the object (synthetic data: black)
-    min_views: int = 2                 # space seen by fewer distinct viewpoints is never occupied (no
-                                       # floaters where nothing can be triangulated); 0 = off
-    bg_prior: str = "auto"             # pixels equal to `background` are free space when masks are not
-                                       # used: auto (on when >= 5% of pixels are) | on | off
-    bg_weight: float = 0.1             # weight of that prior (BCE of opacity toward 0 on those pixels)
-    bg_start_frac: float = 0.2         # the prior ramps in from this fraction of the run to twice it:
-                                       # from the start it erodes the init sphere before thin parts form
-    bg_tolerance: float = 0.008        # per-channel distance to `background` still counted as it (~2/255)
-    bright_fraction: float = 0.5       # share of rays drawn in proportion to pixel brightness: sparse
-                                       # laser lines in dark scenes are otherwise almost never sampled
-    # --- multi-shot (several patterns per viewpoint, e.g. Gray code; fastneus/train/multishot.py) ---
-    group_shots: bool = True           # one ray per viewpoint pixel carries its shots (one march and field
-                                       # evaluation for all); false = every shot's pixels are separate rays
-    shots_per_ray: int = 4             # shots rendered per ray and step, drawn at random (0 = all, in order)
-    init_geometry: str = "auto"        # auto | decode | sphere: start the SDF at the decoded surface (Gray code; one-shot sweep)
-                                       # when every viewpoint is a Gray-code sequence (fastneus/train/geometry_init.py)
-    init_geometry_steps: int = 100     # SDF fit steps of that initialisation (counted in the training time; the
-                                       # prior keeps fitting afterwards: H100 10 s, 3 views, 100 beat 300 on Gray
-                                       # code, colour and cross lines, by taking 20-30 % more training steps)
-    prior_weight: float = 3.0          # after that init, its points stay a prior (SurfacePrior.loss) with this
-                                       # weight, fading linearly toward 0 at prior_frac of the run: one view leaves
-                                       # depth loosely constrained and the photometric loss alone drifts (GPU, toy,
-                                       # 1 view, 10 s: Gray code 4.25 -> 0.11 %, colour lines 5.8 -> 0.42 %)
-    prior_frac: float = 2.0            # (fraction of the run; 2 = half the weight is left at the end; 0 < x)
-
-    # --- occupancy grid ---
-    occ_resolution: int = 128
-    occ_update_every: int = 16
-    occ_warmup_frac: float = 0.2       # every cell occupied for this fraction of the run
-    occ_threshold: float = 0.01
-
-    # --- hash grid ---
-    levels: int = 16
-    features: int = 2
-    log2_table: int = 19
-    base_res: int = 16
-    finest_res: int = 2048
-    c2f_start_levels: int = 4          # coarse-to-fine: active levels at the start (0 = all)
-    c2f_frac: float = 0.4              # ... rising linearly to all levels at this fraction of the run
-
-    # --- networks ---
-    sdf_hidden: int = 64
-    sdf_layers: int = 1
-    geo_features: int = 15
-    color_hidden: int = 64
-    color_layers: int = 2
-    view_dependent: bool = True        # colour network sees the view direction
-    init_radius: float = 0.5           # sphere initialisation of the SDF (normalised units)
-    variance_init: float = 0.3         # inv_s = exp(10 * v)
-    inv_s_floor_end: float = 1000.0    # inv_s >= a floor rising log-linearly from inv_s_floor_start
-    inv_s_floor_start: float = 20.0    # to this value over the first inv_s_floor_frac of the run (end 0 = learned only)
-    inv_s_floor_frac: float = 0.6
-    normal_eps_min: float = 1e-3       # lower bound for the finite-difference step (normalised)
-    sdf_grad: str = "analytic"         # SDF gradient (normals, eikonal): analytic = hash features and
-                                       # their d/dx from one kernel, MLP d/dinput by autograd (1x the
-                                       # points; the curvature prior still uses taps) | fd = 4-tap
-                                       # tetrahedron finite differences (hash grid + SDF MLP on 5x the
-                                       # points). analytic: 10-18% more steps on GPU, 1.6x on CPU, equal or
-                                       # better Chamfer (docs/BENCHMARKS.md "Speed (issue 10)")
-
-    # --- optimisation ---
-    lr: float = 1e-2
-    lr_variance: float = 5e-3
-    lr_illum: float = 3e-2           # on log(i_r), log(i_b)
-    adam_eps: float = 1e-15
-    warmup_frac: float = 0.03          # linear lr warm-up (fraction of the run)
-    color_warmup_frac: float = 0.03    # geometry frozen while the colour net fits the image brightness:
-                                       # in dark scenes the init sphere is otherwise deleted, not darkened
-    decay_to: float = 0.05             # final lr factor (cosine decay after warm-up)
-    eikonal_weight: float = 0.1
-    masks: str = "auto"                # auto (on when every training frame has a mask) | on | off
-    mask_weight: float = 0.1           # BCE on opacity vs mask, when masks are used
-    curvature_weight: float = 0.0      # smoothness prior (oneshot): |sdf(x+e) + sdf(x-e) - 2 sdf(x)|
-    cos_anneal_frac: float = 0.15      # NeuS cos-anneal ratio 0 -> 1 over this fraction of the run
-
-    # --- projection / illumination ---
-    use_pattern: bool = True           # False = passive NeuS (no projected pattern in the model)
-    learn_illum: bool = True
-    illum_warmup_frac: float = 0.15    # i_r, i_b frozen for this fraction of the run (illum_init=scene)
-    illum_init: str = "scene"          # scene (values from scene.json) | ones (i_r = i_b = 1)
-
-    # --- real rigs (fastneus/train/rig.py, docs/REAL-RIGS.md); every part off by default ---
-    pose_refine: bool = False          # learn an SE(3) correction per viewpoint camera and per projector
-    pose_anchor: bool = True           # the first training viewpoint's camera stays fixed (world frame)
-    pose_fix_scale: bool = True        # with the anchor, hold the rig's global scale (its one free direction)
-    lr_pose: float = 2e-4              # on the corrections (radians, normalised units); 1e-3 random-walked the weak modes
-    pose_warmup_frac: float = 0.1      # corrections frozen until the geometry has formed
-    projector_blur: int = 0            # learned n x n separable blur of each projector's pattern (0 = off; odd n <= 7)
-    lr_blur: float = 5e-3              # on the x / y kernel profiles (identity init, each normalised to sum 1)
-    blur_warmup_frac: float = 0.1      # kernels frozen for this fraction of the run
-    refraction: bool = True            # use the scene's flat ports (underwater housings) for rays and projectors
-    medium: str = "auto"               # learned water attenuation + back-scatter: auto (on when the scene has a
-                                       # port) | on | off
-    lr_medium: float = 1e-2            # on log attenuation / back-scatter coefficients and the veiling light
-    medium_far: float = 20.0           # range (world units) of rays that hit nothing, for their back-scatter
-
-    # --- export ---
-    mesh_resolution: int = 256
-    render_frames: list[int] = field(default_factory=lambda: [0])
-
-    def to_dict(self) -> dict[str, Any]:
+    def to_dict(self) -> dict[str, dict[str, Any]]:
+        """Nested plain dict (section -> name -> value), as saved in config.yaml."""
         return dataclasses.asdict(self)
 
+    def flat(self) -> dict[str, Any]:
+        """name -> value over every section (names are unique)."""
+        return {k: v for sec in self.to_dict().values() for k, v in sec.items()}
 
-_CHOICES = {
-    "backend": ("warp", "torch"),
-    "pattern_pass": ("auto", "fused", "split"),
-    "bound": ("sphere", "box"),
-    "illum_init": ("scene", "ones"),
-    "masks": ("auto", "on", "off"),
-    "bg_prior": ("auto", "on", "off"),
-    "init_geometry": ("auto", "decode", "sphere"),
-    "medium": ("auto", "on", "off"),
-    "sdf_grad": ("fd", "analytic"),
-}
-# fractions of the run: each must lie in [0, 1]
-_FRACTIONS = ("occ_warmup_frac", "c2f_frac", "inv_s_floor_frac", "warmup_frac", "color_warmup_frac",
-              "cos_anneal_frac", "illum_warmup_frac", "bg_start_frac", "pose_warmup_frac",
-              "blur_warmup_frac")
+    def replace(self, **updates: Any) -> "Config":
+        """A copy with ``name=value`` updates (bare or ``section__name``), validated."""
+        return apply(self, {k.replace("__", "."): v for k, v in updates.items()}, "replace()")
+
+
+# name -> (section, dataclasses.Field), over every section
+KEYS: dict[str, tuple[str, dataclasses.Field]] = {f.name: (s, f) for s, cls in SECTIONS.items() for f in fields(cls)}
 # keys of earlier versions (schedules in steps): converted to fractions of the run when a saved
 # config is read back (a run folder from an older fastneus must still open)
 _LEGACY_STEPS = {"occ_warmup_steps": "occ_warmup_frac", "warmup_steps": "warmup_frac",
                  "color_warmup_steps": "color_warmup_frac", "cos_anneal_steps": "cos_anneal_frac",
                  "illum_warmup_steps": "illum_warmup_frac"}
-_POSITIVE = {"steps", "target_samples", "init_rays", "min_rays", "max_rays", "march_step",
-             "max_samples_per_ray", "occ_resolution", "occ_update_every", "levels", "features",
-             "log2_table", "base_res", "finest_res", "sdf_hidden", "geo_features", "color_hidden",
-             "lr", "adam_eps", "mesh_resolution", "log_every", "save_every", "init_geometry_steps", "lr_pose",
-             "lr_blur", "lr_medium", "medium_far", "prior_frac"}
+_DROPPED = {"render_frames": "the report picks its frames (fastneus render --frame I renders others)"}
 
 
-@dataclass(frozen=True)
-class _Range:
-    """Allowed values of a numeric key: ``lo`` <= v <= ``hi`` (``lo_open``: lo < v); None = unbounded."""
-
-    lo: float | None = None
-    hi: float | None = None
-    lo_open: bool = False
-    note: str = ""
-
-    def text(self) -> str:
-        g = lambda x: f"{x:.4g}" if isinstance(x, float) else str(x)  # noqa: E731
-        if self.hi is None:
-            return f"must be {'>' if self.lo_open else '>='} {g(self.lo)}"
-        return f"must be in {'(' if self.lo_open else '['}{g(self.lo)}, {g(self.hi)}]"
+def model_keys() -> set[str]:
+    """Names of the knobs that shape the trained model (``--resume`` cannot change them)."""
+    return {k for k, (_, f) in KEYS.items() if f.metadata.get("model")}
 
 
-_INT_MAX = 2 ** 31 - 1  # every integer key (but seed) fits int32: kernels, torch and numpy take it as one
-# inv_s = exp(10 v) is clamped to [1e-3, 1e6] (field.model.inv_s): outside, the clamp passes no gradient
-# and the NeuS variance is stuck there
-_VARIANCE = (math.log(1e-3) / 10, math.log(1e6) / 10)
-# every bounded key, in one table: validate() checks them all (plus the cross-key checks below it)
-_RANGES: dict[str, _Range] = {
-    **{k: _Range(0, None, lo_open=True) for k in _POSITIVE},
-    **{k: _Range(0.0, 1.0, note="a fraction of the run") for k in _FRACTIONS},
-    **{k: _Range(0.0, None, note="0 = off") for k in ("eikonal_weight", "mask_weight", "curvature_weight",
-                                                      "bg_weight", "prior_weight", "min_views")},
-    **{k: _Range(0.0, None, note="0 = frozen") for k in ("lr_variance", "lr_illum")},
-    "seed": _Range(0, 2 ** 32 - 1, note="numpy's seed range"),
-    "threads": _Range(0, 4096, note="0 = every CPU"),
-    "shots_per_ray": _Range(0, None, note="0 = all shots"),
-    "time_budget": _Range(0.0, None, note="seconds; 0 = steps set the length"),
-    "levels": _Range(1, 64, note="hash grid levels"),
-    "features": _Range(1, 8, note="the hash kernels' limit"),
-    "log2_table": _Range(1, 30, note="the hash kernels' limit; 2^30 entries per level"),
-    "c2f_start_levels": _Range(0, None, note="0 = all levels from the start"),
-    "sdf_layers": _Range(0, 16, note="hidden layers of the SDF network"),
-    "color_layers": _Range(0, 16, note="hidden layers of the colour network"),
-    "variance_init": _Range(*_VARIANCE, note="inv_s = exp(10 v) must lie in [1e-3, 1e6], where it learns"),
-    "inv_s_floor_start": _Range(0.0, 1e6, lo_open=True, note="inv_s is clamped to at most 1e6"),
-    "inv_s_floor_end": _Range(0.0, 1e6, note="0 = learned only; inv_s is clamped to at most 1e6"),
-    "init_radius": _Range(0.0, 1.0, lo_open=True, note="normalised units: the start sphere inside the bounds"),
-    "normal_eps_min": _Range(0.0, None, lo_open=True),
-    "background": _Range(0.0, 1.0, note="a colour value"),
-    "bg_tolerance": _Range(0.0, None),
-    "occ_threshold": _Range(0.0, None),
-    "decay_to": _Range(0.0, 1.0, lo_open=True, note="final lr factor"),
-    "bright_fraction": _Range(0.0, 1.0, note="a share of the rays"),
-    "mesh_resolution": _Range(2, 4096, note="the marching-cubes grid; found only after training otherwise"),
-}
-# words YAML 1.1 reads as booleans (masks: off -> False): a choice key with on/off takes them back
-_YAML_BOOL_CHOICE = {True: "on", False: "off"}
+def describe() -> list[tuple[str, str, str, str]]:
+    """(``section.name``, default, range or choices, help) of every knob, for ``fastneus config``."""
+    rows = []
+    for k, (s, f) in KEYS.items():
+        m = f.metadata
+        default = f.default if f.default is not dataclasses.MISSING else f.default_factory()
+        if m["choices"]:
+            rng = " | ".join(str(c) for c in m["choices"])
+        elif m["lo"] is not None or m["hi"] is not None:
+            rng = _range_text(m["lo"], m["hi"], m["lo_open"])
+        else:
+            rng = ""
+        rows.append((f"{s}.{k}", _fmt(default), rng, m["help"]))
+    return rows
 
 
-def _shown(v: Any) -> str:
-    """A value for a one-line message: huge integers as their magnitude, long reprs cut."""
-    if isinstance(v, int) and not isinstance(v, bool) and abs(v) >= 10 ** 15:
-        return f"{'-' if v < 0 else ''}2^{abs(v).bit_length() - 1}+"
-    r = repr(v)
-    return r if len(r) <= 60 else r[:57] + "..."
+def _range_text(lo: Any, hi: Any, lo_open: bool) -> str:
+    """``[0, 1]``, ``(0, 1]``, ``>= 0``, ``> 0``."""
+    if hi is None:
+        return f"{'>' if lo_open else '>='} {_fmt(lo)}"
+    return f"{'(' if lo_open else '['}{_fmt(lo)}, {_fmt(hi)}]"
+
+
+def _fmt(v: Any) -> str:
+    if isinstance(v, bool) or v is None:
+        return yaml.safe_dump(v).split("\n")[0]
+    if isinstance(v, float):
+        return f"{v:g}"
+    return str(v)
 
 
 def preset_names() -> list[str]:
@@ -257,14 +324,15 @@ def _read_yaml(path: Path | Any, label: str) -> dict[str, Any]:
         if _flow_depth(text) > 64:  # PyYAML recurses per level: 100k brackets take seconds to fail
             raise RecursionError
         data = yaml.safe_load(text)
-    except (OSError, yaml.YAMLError) as e:
-        raise FastneusError(f"cannot read config: {e}".splitlines()[0], file=label) from None
     except UnicodeDecodeError as e:
         raise FastneusError(f"cannot read config: not UTF-8 text (byte {e.start})", file=label) from None
     except ValueError as e:  # e.g. an integer of more digits than Python converts
         raise FastneusError(f"cannot read config: {e}".splitlines()[0][:200], file=label) from None
     except RecursionError:
-        raise FastneusError("cannot read config: nested too deeply (a config is a flat mapping)", file=label) from None
+        raise FastneusError("cannot read config: nested too deeply (a config is a mapping of sections)",
+                            file=label) from None
+    except (OSError, yaml.YAMLError) as e:
+        raise FastneusError(f"cannot read config: {e}".splitlines()[0], file=label) from None
     if data is None:
         return {}
     if not isinstance(data, dict):
@@ -272,32 +340,55 @@ def _read_yaml(path: Path | Any, label: str) -> dict[str, Any]:
     return data
 
 
-def _coerce(name: str, value: Any, default: Any, source: str) -> Any:
-    """Convert ``value`` (from YAML or a CLI string) to the type of the field's default."""
-    f = {f.name: f for f in fields(Config)}[name]
+def _shown(v: Any) -> str:
+    """A value for a one-line message: huge integers as their magnitude, long reprs cut."""
+    if isinstance(v, int) and not isinstance(v, bool) and abs(v) >= 10 ** 15:
+        return f"{'-' if v < 0 else ''}2^{abs(v).bit_length() - 1}+"
+    r = repr(v) if not isinstance(v, float) else _fmt(v)
+    return r if len(r) <= 60 else r[:57] + "..."
+
+
+def _coerce(name: str, value: Any, source: str) -> Any:
+    """Convert ``value`` (from YAML or a CLI string) to the type of the knob ``name``."""
+    return coerce(KEYS[name][1], value, source, f"{KEYS[name][0]}.{name}")
+
+
+def coerce(f: dataclasses.Field, value: Any, source: str, where: str) -> Any:
+    """Convert ``value`` (from YAML or a CLI string) to the type of dataclass field ``f``.
+
+    The one parser of every config dataclass (the run config's sections, the NeuS-MLP baseline's).
+
+    Raises:
+        FastneusError: naming ``source`` and ``where`` (the key as the user writes it).
+    """
+    name = f.name
     typ = str(f.type)
+    default = f.default if f.default is not dataclasses.MISSING else f.default_factory()
     try:
         if isinstance(value, str) and name != "preset" and not typ.startswith("str"):
             value = yaml.safe_load(value)  # "3", "1e-2", "true", "[0, 4]", "null"
-        if typ.startswith("list") or "list[" in typ:
+        if "list[" in typ:
             if value is None:
                 return None
-            if isinstance(value, int):
+            if isinstance(value, int) and not isinstance(value, bool):
                 value = [value]
-            if not isinstance(value, (list, tuple)):
-                raise ValueError("expected a list such as [0, 4, 8]")
-            items = [int(v) if isinstance(v, float) and v.is_integer() else v for v in value]
-            if any(isinstance(v, bool) or not isinstance(v, int) or abs(v) > _INT_MAX for v in items):
-                raise ValueError("expected a list of integers such as [0, 4, 8]")
-            return items
-        if isinstance(value, bool) and name in _CHOICES and "on" in _CHOICES[name]:
-            return _YAML_BOOL_CHOICE[value]  # YAML 1.1: on/off/yes/no are booleans
+            if not isinstance(value, (list, tuple)) or not all(isinstance(v, int) and not isinstance(v, bool)
+                                                               and 0 <= v <= _INT_MAX for v in value):
+                raise ValueError("expected a list of frame indices such as [0, 4, 8]")
+            return [int(v) for v in value]
+        if "tuple[" in typ:
+            value = value if isinstance(value, (list, tuple)) else [value]
+            if not all(isinstance(v, int) and not isinstance(v, bool) and abs(v) <= _INT_MAX for v in value):
+                raise ValueError("expected a list of integers such as [4]")
+            return tuple(value)
         if isinstance(default, bool):
+            if isinstance(value, str) and value.lower() in ("on", "off", "yes", "no"):
+                value = value.lower() in ("on", "yes")
             if not isinstance(value, bool):
                 raise ValueError("expected true or false")
             return value
         if isinstance(default, int):
-            if isinstance(value, float) and value.is_integer():
+            if isinstance(value, float) and math.isfinite(value) and value.is_integer():
                 value = int(value)
             if not isinstance(value, int) or isinstance(value, bool):
                 raise ValueError("expected an integer")
@@ -310,59 +401,101 @@ def _coerce(name: str, value: Any, default: Any, source: str) -> Any:
                     pass
             if isinstance(value, bool) or not isinstance(value, (int, float)):
                 raise ValueError("expected a number")
-            return float(value)
+            value = float(value)
+            if not math.isfinite(value):
+                raise ValueError("expected a finite number")
+            return value
+        if isinstance(value, bool) and f.metadata.get("choices") and "off" in f.metadata["choices"]:
+            return "on" if value else "off"  # YAML 1.1 reads on / off as booleans
+        if not isinstance(value, (str, int, float)) or isinstance(value, bool):
+            raise ValueError("expected a word")
         return str(value)
     except (ValueError, TypeError, OverflowError, RecursionError, yaml.YAMLError) as e:
         raise FastneusError(f"bad value {_shown(value)}: {str(e).splitlines()[0] if str(e) else type(e).__name__}",
-                            file=source, field=name) from None
+                            file=source, field=where) from None
 
 
-def apply(cfg: Config, updates: dict[str, Any], source: str) -> Config:
-    """Return ``cfg`` with ``updates`` applied and validated; unknown keys are errors."""
-    known = {f.name for f in fields(cfg)}
-    values = cfg.to_dict()
+def _key(k: Any, source: str, section: str | None = None) -> str:
+    """The knob name of a key (``name``, ``section.name``), or a one-line error."""
+    if not isinstance(k, str):  # a YAML key such as 1: or true:
+        raise FastneusError(f"config keys are names, got {type(k).__name__} {_shown(k)}", file=source,
+                            field=repr(k)[:60])
+    sec, _, name = k.rpartition(".")
+    sec = sec or section
+    if name in _DROPPED:
+        return ""
+    if name not in KEYS or (sec and KEYS[name][0] != sec):
+        close = sorted(f"{KEYS[n][0]}.{n}" for n in KEYS if n.startswith(name[:3]))
+        hint = f" (did you mean {', '.join(close)}?)" if close else " (fastneus config lists them)"
+        shown = k if k.isprintable() else repr(k)  # repr: the message stays one line
+        raise FastneusError(f"unknown config key{hint}", file=source, field=shown[:80])
+    return name
+
+
+def _flatten(updates: dict[Any, Any], source: str) -> dict[str, Any]:
+    """name -> value from a nested ({section: {name: v}}), dotted or flat mapping."""
+    out: dict[str, Any] = {}
     for k, v in updates.items():
-        if not isinstance(k, str):  # a YAML key such as 1: or true:
-            raise FastneusError(f"config keys are names, got {type(k).__name__} {k!r}", file=source, field=repr(k))
-        if k not in known:
-            close = [n for n in known if n.startswith(k[:3])]
-            hint = f" (did you mean {', '.join(sorted(close))}?)" if close else ""
-            raise FastneusError(f"unknown config key{hint}", file=source,
-                                field=k if k.isprintable() else repr(k))  # repr: the message stays one line
-        values[k] = _coerce(k, v, getattr(Config(), k), source)
-    out = Config(**values)
+        if isinstance(k, str) and k in SECTIONS:
+            if v is None:
+                continue
+            if not isinstance(v, dict):
+                raise FastneusError("a section must hold a mapping of name: value", file=source, field=k)
+            for kk, vv in v.items():
+                name = _key(kk, source, section=k)
+                if name:
+                    out[name] = vv
+        else:
+            name = _key(k, source)
+            if name:
+                out[name] = v
+    return out
+
+
+def apply(cfg: Config, updates: dict[Any, Any], source: str) -> Config:
+    """Return ``cfg`` with ``updates`` (nested, dotted or bare names) applied and validated."""
+    values = cfg.flat()
+    for name, v in _flatten(updates, source).items():
+        values[name] = _coerce(name, v, source)
+    out = build(values)
     validate(out, source)
     return out
 
 
+def build(values: dict[str, Any]) -> Config:
+    """A Config from name -> value over all sections (missing names keep their defaults)."""
+    return Config(**{s: cls(**{f.name: values[f.name] for f in fields(cls) if f.name in values})
+                     for s, cls in SECTIONS.items()})
+
+
+def check(f: dataclasses.Field, v: Any, source: str, where: str) -> None:
+    """Check value ``v`` of field ``f`` against its declared range and choices (:func:`knob`)."""
+    m = f.metadata
+    if isinstance(v, float) and not math.isfinite(v):
+        raise FastneusError(f"must be a finite number, got {v!r}", file=source, field=where)
+    if m.get("choices") and v not in m["choices"]:
+        raise FastneusError(f"must be one of {', '.join(str(c) for c in m['choices'])}, got {v!r}",
+                            file=source, field=where)
+    if isinstance(v, (int, float)) and not isinstance(v, bool):
+        lo, hi = m.get("lo"), m.get("hi")
+        if isinstance(v, int) and hi is None:
+            hi = _INT_MAX
+        if (lo is not None and (v < lo or (m.get("lo_open") and v == lo))) or (hi is not None and v > hi):
+            rng = _range_text(lo, hi, m.get("lo_open", False)) if lo is not None else f"<= {_fmt(hi)}"
+            raise FastneusError(f"must be {'in ' if rng[0] in '[(' else ''}{rng}, got {_shown(v)}",
+                                file=source, field=where)
+
+
 def validate(cfg: Config, source: str = "config") -> None:
-    for f in fields(cfg):  # .nan / .inf parse as floats; a NaN weight would silently skip every step
-        v = getattr(cfg, f.name)
-        if isinstance(v, float) and not math.isfinite(v):
-            raise FastneusError(f"must be a finite number, got {v!r}", file=source, field=f.name)
-    for k, choices in _CHOICES.items():
-        if getattr(cfg, k) not in choices:
-            raise FastneusError(f"must be one of {', '.join(choices)}, got {getattr(cfg, k)!r}", file=source, field=k)
-    for f in fields(cfg):  # the table of ranges, then int32 for every other integer
-        v = getattr(cfg, f.name)
-        if isinstance(v, bool) or not isinstance(v, (int, float)):
-            continue
-        r = _RANGES.get(f.name, _Range(-_INT_MAX, _INT_MAX) if isinstance(v, int) else None)
-        if r is None:
-            continue
-        if (r.lo is not None and (v <= r.lo if r.lo_open else v < r.lo)) or (r.hi is not None and v > r.hi):
-            raise FastneusError(f"{r.text()}{f' ({r.note})' if r.note else ''}, got {_shown(v)}", file=source,
-                                field=f.name)
-        if isinstance(v, int) and r.hi is None and v > _INT_MAX:
-            raise FastneusError(f"must be at most {_INT_MAX}, got {_shown(v)}", file=source, field=f.name)
-    if cfg.min_rays > cfg.max_rays:
-        raise FastneusError("min_rays must not exceed max_rays", file=source, field="min_rays")
-    if cfg.base_res > cfg.finest_res:
-        raise FastneusError(f"must not exceed finest_res ({cfg.finest_res}), got {cfg.base_res}", file=source,
-                            field="base_res")
-    if cfg.projector_blur not in (0, 1, 3, 5, 7):
-        raise FastneusError(f"must be 0 (off) or an odd kernel size 1..7, got {cfg.projector_blur}", file=source,
-                            field="projector_blur")
+    """Check every knob against its declared range / choices, then the cross-knob rules."""
+    for s, cls in SECTIONS.items():
+        sec = getattr(cfg, s)
+        for f in fields(cls):
+            check(f, getattr(sec, f.name), source, f"{s}.{f.name}")
+    if cfg.rays.min_rays > cfg.rays.max_rays:
+        raise FastneusError("must not exceed rays.max_rays", file=source, field="rays.min_rays")
+    if cfg.hashgrid.base_res > cfg.hashgrid.finest_res:
+        raise FastneusError("must not exceed hashgrid.finest_res", file=source, field="hashgrid.base_res")
 
 
 def load_config(config: str | None = None, overrides: list[str] | None = None,
@@ -371,10 +504,11 @@ def load_config(config: str | None = None, overrides: list[str] | None = None,
 
     Args:
         config: a preset name (``fewview``, ``oneshot``, ...) or a path to a YAML file.
-        overrides: strings ``key=value`` (value parsed as YAML).
+        overrides: strings ``key=value`` or ``section.key=value`` (value parsed as YAML).
         base: extra keys applied after the YAML (used by verbs such as ``oneshot``).
     """
     cfg = Config()
+    notes: list[str] = []
     if config:
         path = Path(config)
         if path.suffix in (".yaml", ".yml") or os.sep in config:
@@ -387,51 +521,74 @@ def load_config(config: str | None = None, overrides: list[str] | None = None,
                 raise FastneusError(f"unknown preset; presets: {', '.join(preset_names())}", field="--config")
             label = f"configs/{config}.yaml"
             data = _read_yaml(res, label)
-        data.setdefault("preset", Path(config).stem)
+        data = _translate(data, label, notes)
+        if not (isinstance(data.get("run"), dict) and "preset" in data["run"]) and "preset" not in data:
+            data["run.preset"] = Path(config).stem
         cfg = apply(cfg, data, label)
     if base:
         cfg = apply(cfg, base, "command line")
+    cfg = apply(cfg, parse_overrides(overrides), "command line")
+    for n in notes:  # only once everything loaded: an error stays one line
+        _note(n)
+    return cfg
+
+
+def parse_overrides(overrides: list[str] | None) -> dict[str, str]:
+    """``["a=1", "optim.lr=2"]`` -> ``{"a": "1", "optim.lr": "2"}`` (values still strings)."""
     parsed: dict[str, Any] = {}
     for item in overrides or []:
         if "=" not in item:
             raise FastneusError(f"expected key=value, got {item!r}", field="overrides")
         k, v = item.split("=", 1)
         parsed[k.strip()] = v
-    return apply(cfg, parsed, "command line")
+    return parsed
 
 
 def save_config(cfg: Config, path: Path) -> None:
-    """Write the resolved config as YAML, atomically."""
-    from .io import atomic_write_text
+    """Write the resolved config as nested YAML, atomically."""
+    from fastneus.io import atomic_write_text  # io is a sibling base module; kept lazy for start-up
 
     atomic_write_text(path, yaml.safe_dump(cfg.to_dict(), sort_keys=False))
 
 
-def config_from_dict(d: dict[str, Any], source: str) -> Config:
-    """Rebuild a Config from a saved dict (a run's config.yaml or a checkpoint).
-
-    Step-based schedule keys of earlier versions become fractions of that run's ``steps``.
-    """
+def _translate(d: dict[Any, Any], source: str, notes: list[str]) -> dict[Any, Any]:
+    """Translate a mapping of an earlier version's step-based schedules into fractions of the run;
+    what was translated is appended to ``notes``."""
     d = dict(d)
+    # flat keys (an earlier version's saved config) need no translation: bare names are unique
+    legacy = [k for k in d if k in _LEGACY_STEPS or k == "c2f_steps_per_level"]
+    if legacy:
+        steps = d.get("steps", d.get("run", {}).get("steps") if isinstance(d.get("run"), dict) else None)
+        try:
+            steps = max(1, int(steps if steps is not None else RunSection.steps))
+        except (TypeError, ValueError, OverflowError):
+            raise FastneusError(f"bad value {steps!r}: expected an integer", file=source, field="run.steps") from None
+        for old in legacy:
+            v = d.pop(old)
+            try:
+                v = float(v)
+            except (TypeError, ValueError):
+                raise FastneusError(f"bad value {v!r}: expected a number", file=source, field=old) from None
+            if old == "c2f_steps_per_level":
+                levels = int(d.get("levels", HashGridSection.levels) or 1)
+                start = int(d.get("c2f_start_levels", HashGridSection.c2f_start_levels) or 0)
+                d.setdefault("c2f_frac", min(1.0, max(0, levels - start) * max(1.0, v) / steps))
+            else:
+                d.setdefault(_LEGACY_STEPS[old], min(1.0, max(0.0, v / steps)))
+            new = "c2f_frac" if old == "c2f_steps_per_level" else _LEGACY_STEPS[old]
+            notes.append(f"{source}: {old} of an earlier fastneus read as {KEYS[new][0]}.{new}, a fraction of the run")
+    return d
 
-    def num(key: str, default: float) -> float:
-        """A finite number the conversion needs; a bad legacy key is named, others are left to apply()."""
-        v = d.get(key, default)
-        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or abs(v) > _INT_MAX:
-            if key in _LEGACY_STEPS or key == "c2f_steps_per_level":
-                raise FastneusError(f"expected a number of steps, got {v!r}"[:120], file=source, field=key)
-            return default
-        return float(v)
 
-    steps = max(1.0, num("steps", Config.steps))
-    for old, new in _LEGACY_STEPS.items():
-        if old in d:
-            v = num(old, 0)
-            d.pop(old)
-            d.setdefault(new, min(1.0, max(0.0, v / steps)))
-    if "c2f_steps_per_level" in d:
-        per = max(1.0, num("c2f_steps_per_level", 1))
-        d.pop("c2f_steps_per_level")
-        levels, start = num("levels", Config.levels), num("c2f_start_levels", Config.c2f_start_levels)
-        d.setdefault("c2f_frac", min(1.0, max(0.0, levels - start) * per / steps))
-    return apply(Config(), d, source)
+def config_from_dict(d: dict[str, Any], source: str) -> Config:
+    """Rebuild a Config from a saved dict (a run's config.yaml or a checkpoint), nested or flat.
+
+    What an earlier version's dict needed translated is printed as a note once it loaded.
+    """
+    if not isinstance(d, dict):
+        raise FastneusError("a saved config must be a mapping", file=source)
+    notes: list[str] = []
+    cfg = apply(Config(), _translate(d, source, notes), source)
+    for n in notes:
+        _note(n)
+    return cfg

@@ -1,6 +1,8 @@
 """A whole run: train -> mesh -> renders -> metrics -> illumination -> report, each phase timed."""
 from __future__ import annotations
 
+import json
+import os
 import time
 from pathlib import Path
 
@@ -39,8 +41,8 @@ def finish_run(trainer, console=None, eval_frames: list[int] | None = None, mesh
     try:
         with clock.phase("mesh"):
             t = time.perf_counter()
-            res = mesh_resolution or cfg.mesh_resolution
-            mesh = extract_mesh_arrays(trainer.field, scene, res, trainer.device, bound=cfg.bound,
+            res = mesh_resolution or cfg.export.mesh_resolution
+            mesh = extract_mesh_arrays(trainer.field, scene, res, trainer.device, bound=cfg.rays.bound,
                                        allowed=trainer.seen)
             save_mesh(mesh, run / "mesh.ply")
             at = clock.mark("mesh_ready")
@@ -254,9 +256,9 @@ def _train_and_finish(trainer, scene, cfg: Config, out: Path, device: str, conso
         console.print(trainer.threads_note)
         console.print(trainer.masks_note)
         console.print(trainer.bg_note)
-        length = f"time budget {cfg.time_budget:g} s" if cfg.time_budget > 0 else f"{cfg.steps} steps"
+        length = f"time budget {cfg.run.time_budget:g} s" if cfg.run.time_budget > 0 else f"{cfg.run.steps} steps"
         console.print(f"run length: {length}; every schedule is a fraction of it")
-    atomic_write_json(out / "run.json", {"scene": str(scene.root), "device": str(device), "preset": cfg.preset,
+    atomic_write_json(out / "run.json", {"scene": str(scene.root), "device": str(device), "preset": cfg.run.preset,
                                          "threads": trainer.threads, "masks": trainer.masks_note,
                                          "background_prior": trainer.bg_note})
     with stop_on_signal(trainer, out):
@@ -266,3 +268,96 @@ def _train_and_finish(trainer, scene, cfg: Config, out: Path, device: str, conso
                       f"PSNR {last['psnr']:.2f} dB, i_r {last['i_r']:.4f}, i_b {last['i_b']:.4f}")
     metrics = finish_run(trainer, console, clock=clock, save_checkpoint=True) if finish else {}
     return trainer, metrics
+
+
+# --------------------------------------------------------------------------- the public facade
+def open_run(run: str, device: str, scene: str | None = None):
+    """Scene + trainer (weights loaded) of a run folder."""
+    from fastneus.formats.detect import load_scene  # lazily: the CLI start-up does not pay for them
+    from fastneus.train.trainer import trainer_from_run
+
+    rp = Path(run)
+    if not rp.is_dir():
+        raise FastneusError("run folder not found", file=run)
+    if scene is None:
+        meta = rp / "run.json"
+        if not meta.is_file():
+            raise FastneusError("run.json missing; pass --scene", file=str(meta))
+        try:
+            scene = json.loads(meta.read_text())["scene"]
+        except (OSError, UnicodeDecodeError, ValueError, KeyError, TypeError, RecursionError) as e:
+            raise FastneusError(f"unreadable run metadata: {type(e).__name__}: {e}".splitlines()[0],
+                                file=str(meta), field="scene") from None
+        if not isinstance(scene, str) or not scene:
+            raise FastneusError(f"expected the scene folder's path, got {scene!r}", file=str(meta), field="scene")
+        if not Path(scene).exists():
+            raise FastneusError(f"the run's scene {scene} is gone (moved?); pass --scene DIR", file=str(meta),
+                                field="scene")
+    sc = load_scene(scene)
+    return sc, trainer_from_run(sc, rp, device)
+
+
+def reconstruct(scene, config=None, out: str | os.PathLike = "runs/fastneus", device: str | None = None, *,
+                overrides: list[str] | None = None, resume: bool = False, overwrite: bool = False,
+                console=None) -> tuple[object, dict]:
+    """Reconstruct a scene: train, then write mesh.ply, renders, metrics and report.html into ``out``.
+
+    Args:
+        scene: a :class:`fastneus.data.Scene` or a scene folder of any supported format.
+        config: a :class:`fastneus.config.Config`, a preset name or YAML path, or None (fewview on
+            CUDA, cpu-quick on CPU).
+        out: the run folder (refused if it holds another run, unless ``resume`` / ``overwrite``).
+        device: ``cpu`` or ``cuda`` (default: cuda when available).
+        overrides: ``["section.key=value", ...]`` applied on top of ``config``.
+        console: a rich Console for progress (None: quiet).
+
+    Returns:
+        (trainer, metrics): the trained :class:`fastneus.train.trainer.Trainer` and the metrics dict.
+    """
+    import torch
+
+    from fastneus.config import apply, load_config, parse_overrides
+    from fastneus.formats.detect import load_scene
+
+    if isinstance(scene, (str, os.PathLike)):
+        scene = load_scene(scene)
+    device = device or ("cuda" if torch.cuda.is_available() else "cpu")
+    if config is None or isinstance(config, (str, os.PathLike)):
+        cfg = load_config(str(config) if config else ("fewview" if device.startswith("cuda") else "cpu-quick"),
+                          overrides)
+    else:
+        cfg = apply(config, parse_overrides(overrides), "overrides")
+    return train_scene(scene, cfg, Path(out), device, console=console, resume=resume, overwrite=overwrite)
+
+
+def extract_mesh(trainer, resolution: int | None = None):
+    """The trained surface as a ``trimesh.Trimesh`` in world units (marching cubes).
+
+    Args:
+        trainer: a trained :class:`fastneus.train.trainer.Trainer` (e.g. from :func:`reconstruct`).
+        resolution: grid resolution (default: the run's ``export.mesh_resolution``).
+    """
+    from fastneus.export.mesh import extract_mesh_arrays
+
+    res = resolution or trainer.cfg.export.mesh_resolution
+    return extract_mesh_arrays(trainer.field, trainer.scene, res, trainer.device, bound=trainer.cfg.rays.bound,
+                               allowed=trainer.seen).to_trimesh()
+
+
+def evaluate(run: str | os.PathLike, device: str | None = None, scene: str | None = None,
+             frames: list[int] | None = None, resolution: int | None = None) -> dict:
+    """Re-evaluate a run folder (mesh, renders, metrics.json, report.html); returns the metrics.
+
+    Args:
+        run: the run folder. scene: its scene folder when run.json's path moved.
+        frames: frames to render (default: the run's choice). resolution: marching-cubes grid.
+    """
+    import torch
+
+    from fastneus.io import confined
+    from fastneus.train.runfolder import run_lock
+
+    device = device or ("cuda" if torch.cuda.is_available() else "cpu")
+    with confined(run), run_lock(Path(run)):
+        _, tr = open_run(str(run), device, scene)
+        return finish_run(tr, eval_frames=frames, mesh_resolution=resolution)

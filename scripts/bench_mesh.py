@@ -24,7 +24,7 @@ from benchutil import command_line, md_table, median, provenance_line, ratio, sy
 def dense(tr, res: int):
     from fastneus.export.mesh import mesh_from_grid, sdf_grid
 
-    g = sdf_grid(tr.field, res, tr.device, bound=tr.cfg.bound, allowed=tr.seen)
+    g = sdf_grid(tr.field, res, tr.device, bound=tr.cfg.rays.bound, allowed=tr.seen)
     return mesh_from_grid(g, tr.scene.bounds.center, float(tr.scene.bounds.radius))
 
 
@@ -66,7 +66,7 @@ def main() -> None:
     for res in [int(r) for r in args.res.split(",")]:
         radius = float(tr.scene.bounds.radius)
         voxel = 2.0 * radius / (res - 1)
-        fast = lambda: extract_mesh_arrays(tr.field, tr.scene, res, tr.device, bound=tr.cfg.bound,  # noqa: E731
+        fast = lambda: extract_mesh_arrays(tr.field, tr.scene, res, tr.device, bound=tr.cfg.rays.bound,  # noqa: E731
                                            allowed=tr.seen, mc=args.mc)
         fast()  # warm-up: Warp module load, allocator
         t_fast, m = timed(fast, args.device, args.repeat)

@@ -294,6 +294,6 @@ def phase_breakdown(trainers: dict, steps: int, warmup: int = 5) -> dict:
         med = {p: (statistics.fmean(v) if p == "occupancy update" else median(v)) for p, v in per[n].items()}
         total = sum(med.values())
         res[n] = {"steps": steps, "rays": tr.n_rays, "samples_median": median(samples[n]),
-                  "occ_update_every": tr.cfg.occ_update_every, "step_ms": median(walls[n]), "total_ms": total,
+                  "occ_update_every": tr.cfg.occupancy.occ_update_every, "step_ms": median(walls[n]), "total_ms": total,
                   "phases": [{"phase": p, "ms": med[p], "share_pct": 100 * ratio(med[p], total)} for p in PHASES]}
     return res

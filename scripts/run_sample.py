@@ -159,8 +159,8 @@ def main(argv=None) -> int:
     results, renders_by = {}, {}
     for v in variants:
         cfg = load_config(preset, overrides=base + VARIANTS[v] + list(args.overrides))
-        cfg.frames = train
-        console.rule(f"{v}: preset {preset}, {cfg.steps} steps on {device}")
+        cfg = cfg.replace(frames=train)
+        console.rule(f"{v}: preset {preset}, {cfg.run.steps} steps on {device}")
         t = time.perf_counter()
         trainer, _ = train_scene(scene, cfg, out / v, device, console=console, finish=False, overwrite=True)
         train_s = time.perf_counter() - t

@@ -121,7 +121,7 @@ def warm_up(method: str, scene, args, out: Path, frames: list[int]) -> None:
         tr.prime()
     for i in range(4):
         if i == 2 and method != "baseline":
-            tr.elapsed = 0.5 * tr.cfg.time_budget  # past the occupancy warm-up: the real grid update runs
+            tr.elapsed = 0.5 * tr.cfg.run.time_budget  # past the occupancy warm-up: the real grid update runs
         tr.train_step()
     sync(args.device)
     del tr
@@ -171,10 +171,15 @@ def psnr_subset(trainer, scene, frame: int, n_pix: int, chunk: int) -> float:
     fidx0 = torch.zeros_like(flat)
     o, d = bank.rays(fidx0, col.float() + 0.5, row.float() + 0.5)
     r = render_rays_any(trainer, o, d, fidx0.to(torch.int32), proj, chunk)
-    pred = r["color"] + trainer.cfg.background * (1 - r["opacity"])[:, None]
+    pred = r["color"] + knob_of(trainer.cfg, 'rays', 'background') * (1 - r["opacity"])[:, None]
     gt = bank.rgb[flat].float().cpu() / 255.0
     mse = float(((pred.clamp(0, 1) - gt) ** 2).mean())
     return -10 * math.log10(max(mse, 1e-12))
+
+
+def knob_of(cfg, section: str, name: str):
+    """A knob of fastneus's sectioned config, or of the NeuS-MLP baseline's flat one."""
+    return getattr(getattr(cfg, section), name) if hasattr(cfg, section) else getattr(cfg, name)
 
 
 def evaluate(trainer, scene, args, frames: list[int], eval_frame: int) -> dict:
@@ -183,7 +188,7 @@ def evaluate(trainer, scene, args, frames: list[int], eval_frame: int) -> dict:
     from fastneus.export.mesh import extract_mesh
 
     t = time.perf_counter()
-    mesh = extract_mesh(trainer.field, scene, args.mesh_res, trainer.device, bound=trainer.cfg.bound)
+    mesh = extract_mesh(trainer.field, scene, args.mesh_res, trainer.device, bound=knob_of(trainer.cfg, 'rays', 'bound'))
     g = geometry_metrics(mesh, scene, frames, n_points=args.points)
     if args.psnr_pixels > 0:
         psnr = psnr_subset(trainer, scene, eval_frame, args.psnr_pixels, args.chunk)

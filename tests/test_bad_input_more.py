@@ -396,7 +396,7 @@ def test_yaml_off_is_off(tmp_path):
     p = tmp_path / "c.yaml"
     p.write_text("masks: off\nbg_prior: yes\nmedium: no\n")
     cfg = load_config(str(p))
-    assert (cfg.masks, cfg.bg_prior, cfg.medium) == ("off", "on", "off")
+    assert (cfg.loss.masks, cfg.loss.bg_prior, cfg.rig.medium) == ("off", "on", "off")
 
 
 # --------------------------------------------------------------------------- checkpoints

@@ -248,7 +248,7 @@ def _field(backend, sdf_grad, seed, hash_weight=0.0, table_scale=1.0, extra=()):
     cfg = load_config("cpu-quick", [f"backend={backend}", f"sdf_grad={sdf_grad}", "log2_table=12",
                                     "levels=6", "finest_res=128", *extra])
     torch.manual_seed(seed)
-    f = SDFField(cfg, "cpu")
+    f = SDFField(cfg.hashgrid, cfg.network, "cpu", backend=cfg.run.backend)
     gen = torch.Generator().manual_seed(seed + 1)
     with torch.no_grad():
         f.table.mul_(table_scale)
@@ -379,9 +379,9 @@ def test_config_sdf_grad_validated():
     from fastneus.config import load_config
     from fastneus.errors import FastneusError
 
-    assert load_config("cpu-quick").sdf_grad == "analytic"  # the default (BENCHMARKS "Speed (issue 10)")
-    assert load_config("fewview").sdf_grad == "analytic"
-    assert load_config("cpu-quick", ["sdf_grad=fd"]).sdf_grad == "fd"
+    assert load_config("cpu-quick").network.sdf_grad == "analytic"  # the default (BENCHMARKS "Speed (issue 10)")
+    assert load_config("fewview").network.sdf_grad == "analytic"
+    assert load_config("cpu-quick", ["sdf_grad=fd"]).network.sdf_grad == "fd"
     with pytest.raises(FastneusError, match="sdf_grad"):
         load_config("cpu-quick", ["sdf_grad=autograd"])
 

@@ -79,7 +79,7 @@ def test_grouped_render_equals_per_shot_renders(gray, backend):
     """Rendering K shots over shared samples = K separate renders, in value and in gradient."""
     cfg = load_config("cpu-quick", [f"backend={backend}", "levels=4", "log2_table=12", "finest_res=64"])
     torch.manual_seed(int(np.random.default_rng().integers(1 << 30)))
-    field = SDFField(cfg, "cpu")
+    field = SDFField(cfg.hashgrid, cfg.network, "cpu", backend=cfg.run.backend)
     with torch.no_grad():
         field.table.normal_(0, 0.05)
     frames = list(range(len(gray.frames)))
@@ -143,7 +143,7 @@ def test_geometry_init_from_decoded_gray_code(tmp_path):
     with torch.no_grad():
         before = tr.field.sdf(P).abs().mean()
     note = initialise_geometry(tr)
-    assert note and "decoded Gray code" in note and tr.field.active_levels == cfg.levels
+    assert note and "decoded Gray code" in note and tr.field.active_levels == cfg.hashgrid.levels
     with torch.no_grad():
         f0 = tr.field.sdf(P)
         f_front = tr.field.sdf(P - 0.03 * D)

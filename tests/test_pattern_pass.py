@@ -17,10 +17,10 @@ DEVICES = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
 
 def test_auto_splits_on_cuda_only():
     cfg = load_config("cpu-quick", [])
-    assert cfg.pattern_pass == "auto"
+    assert cfg.run.pattern_pass == "auto"
     assert pattern_pass_split(cfg, "cuda") and not pattern_pass_split(cfg, "cpu")
-    assert pattern_pass_split(dataclasses.replace(cfg, pattern_pass="split"), "cpu")
-    assert not pattern_pass_split(dataclasses.replace(cfg, pattern_pass="fused"), "cuda")
+    assert pattern_pass_split(cfg.replace(pattern_pass="split"), "cpu")
+    assert not pattern_pass_split(cfg.replace(pattern_pass="fused"), "cuda")
 
 
 @pytest.mark.parametrize("device", DEVICES)
@@ -39,7 +39,7 @@ def test_split_matches_fused(tmp_path, device, backend, pose):
     params = [p for p in tr.field.parameters() if p.requires_grad] + ([tr.rig.cam_xi, tr.rig.proj_xi] if pose else [])
     res = {}
     for mode in ("fused", "split"):
-        cfg = dataclasses.replace(tr.cfg, pattern_pass=mode)
+        cfg = tr.cfg.replace(pattern_pass=mode)
         batch, (i_r, i_b) = tr.rig.rays(raw), tr.illumination()  # fresh graphs per mode
         torch.manual_seed(7)  # same jitter
         out = render_rays(tr.field, tr.grid.bits, tr.grid.resolution, tr.rig.projection(), batch["origins"],

@@ -45,7 +45,7 @@ def test_corrections_undo_a_known_perturbation_exactly(tmp_path):
     pert = perturb_scene(truth, deg=2.0, metres=0.05, seed=1)
     frames = [0, 1, 2]
     bank, proj = RayBank(pert, frames, "cpu"), build_projection(pert, frames, "cpu")
-    rig = Rig(pert, frames, bank, proj, _cfg(), "cpu")
+    rig = Rig(pert, frames, bank, proj, _cfg().rig, "cpu")
     with torch.no_grad():  # set the corrections that undo the perturbation
         for v in (1, 2):
             E = np.linalg.inv(truth.cam_to_world(v)) @ pert.cam_to_world(v)
@@ -78,7 +78,7 @@ def test_scale_gauge_is_the_global_scale_mode_and_is_removed(tmp_path):
     that leaves all images unchanged. ``fix_gauge`` removes exactly that component."""
     scene = make_scene(tmp_path / "s", n=4, n_proj=2, seed=int(np.random.default_rng().integers(1 << 30)))
     frames = [0, 1, 2, 3]
-    rig = Rig(scene, frames, RayBank(scene, frames, "cpu"), build_projection(scene, frames, "cpu"), _cfg(), "cpu")
+    rig = Rig(scene, frames, RayBank(scene, frames, "cpu"), build_projection(scene, frames, "cpu"), _cfg().rig, "cpu")
     g = rig.gauge.double()
     assert g.shape == (3 * (len(rig.view_ids) + len(rig.proj_ids)),) and abs(float(g.norm()) - 1) < 1e-6
     eps = 1e-4
@@ -114,7 +114,7 @@ def test_scale_gauge_is_the_global_scale_mode_and_is_removed(tmp_path):
     torch.testing.assert_close(after, before - (before @ g) * g, atol=1e-6, rtol=0)
     assert torch.equal(rot[0], rig.cam_xi[:, :3]) and torch.equal(rot[1], rig.proj_xi[:, :3])
     off = Rig(scene, frames, RayBank(scene, frames, "cpu"), build_projection(scene, frames, "cpu"),
-              _cfg(pose_fix_scale="false"), "cpu")
+              _cfg(pose_fix_scale="false").rig, "cpu")
     assert off.gauge is None
 
 
@@ -135,7 +135,7 @@ def test_projector_pose_recovered_through_render_kernel(tmp_path, backend):
     cv2.imwrite(str(tmp_path / "s" / "patterns" / "q0.png"), _smooth_pattern(24, 32, 1))
     pert = perturb_scene(truth, deg=1.5, metres=0.03, seed=2)
     bank, proj = RayBank(pert, [0], "cpu"), build_projection(pert, [0], "cpu")
-    rig = Rig(pert, [0], bank, proj, _cfg(), "cpu")
+    rig = Rig(pert, [0], bank, proj, _cfg().rig, "cpu")
     proj_true = build_projection(truth, [0], "cpu")
     # points the projector lights (inside its image), one fully opaque sample per ray
     rng = np.random.default_rng(3)
@@ -177,7 +177,7 @@ def test_camera_pose_recovered_through_rays(tmp_path):
     truth = make_scene(tmp_path / "s", n=2, n_proj=1, seed=8, size=(48, 32))
     pert = perturb_scene(truth, deg=1.0, metres=0.02, seed=5)
     bank = RayBank(pert, [0, 1], "cpu")
-    rig = Rig(pert, [0, 1], bank, build_projection(pert, [0, 1], "cpu"), _cfg(), "cpu")
+    rig = Rig(pert, [0, 1], bank, build_projection(pert, [0, 1], "cpu"), _cfg().rig, "cpu")
     b_true = RayBank(truth, [0, 1], "cpu")
     o_t, d_t, _ = b_true.image_rays(1)
     nrm = torch.nn.functional.normalize(o_t[0] + torch.tensor([0.3, -0.2, 0.1]), dim=0)  # plane through 0
@@ -233,7 +233,7 @@ def test_trainer_learns_corrections_after_warmup_and_resumes(tmp_path):
     tr2.fit()
     assert tr2.step == 14
     off = Trainer(scene, load_config("cpu-quick", over), tmp_path / "run_off", "cpu")
-    assert off.rig.param_groups(off.cfg) == [] and off.rig.projection() is off.proj
+    assert off.rig.param_groups() == [] and off.rig.projection() is off.proj
 
 
 # --------------------------------------------------------------------------- projector blur
@@ -247,7 +247,7 @@ def test_blur_kernel_recovered_through_project_op(tmp_path):
     cv2.imwrite(str(tmp_path / "s" / "patterns" / "q0.png"),
                 make_pattern("crosslaser", 32, 24, seed=1, count=4, line_width=1)[0][:, :, ::-1])
     bank, proj = RayBank(scene, [0], "cpu"), build_projection(scene, [0], "cpu")
-    rig = Rig(scene, [0], bank, proj, load_config("cpu-quick", ["projector_blur=5"]), "cpu")
+    rig = Rig(scene, [0], bank, proj, load_config("cpu-quick", ["projector_blur=5"]).rig, "cpu")
     rng = np.random.default_rng(3)
     pos = torch.tensor(rng.uniform(-0.6, 0.6, (3000, 3)), dtype=torch.float32)
     n = pos.shape[0]
@@ -282,7 +282,7 @@ def test_blur_identity_at_init_and_learned_in_training(tmp_path):
     over = ["steps=10", "blur_warmup_frac=0.5", "occ_resolution=16", "target_samples=2048", "init_rays=128",
             "max_rays=256", "log_every=5", "save_every=100", "projector_blur=5"]
     tr = Trainer(scene, load_config("cpu-quick", over), tmp_path / "run", "cpu")
-    tr.grid.update(tr.field.sdf, 0.0, tr.cfg.march_step, warmup=True)
+    tr.grid.update(tr.field.sdf, 0.0, tr.cfg.rays.march_step, warmup=True)
     b = tr.bank.sample(128, torch.Generator().manual_seed(0))
     kw = dict(i_r=torch.tensor([0.4]), i_b=torch.tensor([0.1]), cos_anneal=1.0, jitter=False)
     with torch.no_grad():
@@ -320,12 +320,12 @@ def test_config_keys_validate_and_accept_exponent_floats():
     from fastneus.errors import FastneusError
 
     c = load_config("cpu-quick", ["lr_pose=3e-3", "projector_blur=5", "medium=off", "pose_warmup_frac=0.2"])
-    assert c.lr_pose == 3e-3 and c.projector_blur == 5 and c.medium == "off"
+    assert c.rig.lr_pose == 3e-3 and c.rig.projector_blur == 5 and c.rig.medium == "off"
     for bad, key in (("projector_blur=4", "projector_blur"), ("medium=oil", "medium"),
                      ("pose_warmup_frac=1.5", "pose_warmup_frac"), ("lr_blur=0", "lr_blur"), ("lr_pose=x", "lr_pose")):
         with pytest.raises(FastneusError) as e:
             load_config("cpu-quick", [bad])
-        assert e.value.field == key
+        assert e.value.field == f"rig.{key}"
 
 
 def test_pose_errors_image_shift_tells_a_turn_from_an_orbit(tmp_path):

@@ -192,7 +192,7 @@ def test_checkpoint_is_plain_data_and_round_trips(small_run, tmp_path):
 
     st = torch.load(small_run / CKPT_NAME, weights_only=True)  # torch's restricted unpickler accepts it
     assert st["step"] == 0 and isinstance(st["field"], dict) and isinstance(st["gen"], torch.Tensor)
-    assert load_checkpoint(small_run)["config"]["log2_table"] == 12
+    assert load_checkpoint(small_run)["config"]["hashgrid"]["log2_table"] == 12
     assert plain({"a": np.float32(2.0), "b": (np.arange(3), [np.int64(1)])})["b"][1] == [1]
     with pytest.raises(TypeError, match="state.x"):
         plain({"x": Path(".")})

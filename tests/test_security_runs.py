@@ -229,8 +229,9 @@ def test_resume_continues_with_the_runs_own_config(run, small_scene, capsys):
     # the run has log2_table=12 levels=4 (SMALL_RUN), which the preset does not: only steps given here
     assert _train(small_scene, run, "--resume", "steps=6", "lr=0.005") == 0
     st = load_checkpoint(run)
-    assert st["step"] == 6 and st["config"]["log2_table"] == 12 and st["config"]["levels"] == 4
-    assert st["config"]["lr"] == 0.005 and st["config"]["mesh_resolution"] == 16
+    c = st["config"]
+    assert st["step"] == 6 and c["hashgrid"]["log2_table"] == 12 and c["hashgrid"]["levels"] == 4
+    assert c["optim"]["lr"] == 0.005 and c["export"]["mesh_resolution"] == 16
     capsys.readouterr()
     before = _snapshot(run)
     assert _train(small_scene, run, "--resume", "steps=8", "levels=8") == 2

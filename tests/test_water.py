@@ -81,7 +81,7 @@ def test_medium_model_matches_synth_image_formation(tmp_path):
 
     s = _water_scene(tmp_path, views=1)
     bank, proj = RayBank(s, [0], "cpu"), build_projection(s, [0], "cpu")
-    rig = Rig(s, [0], bank, proj, load_config("cpu-quick"), "cpu")
+    rig = Rig(s, [0], bank, proj, load_config("cpu-quick").rig, "cpu")
     assert rig.medium_on and proj.port is not None
     with torch.no_grad():
         rig.log_beta_d.copy_(torch.tensor(WATER["beta_d"]).log())
@@ -94,7 +94,7 @@ def test_medium_model_matches_synth_image_formation(tmp_path):
     water = _Water(r_world[:1], torch.tensor([0]), 1, "cpu")
     torch.testing.assert_close(got[0], water.seen(c[:1])[0])
     torch.testing.assert_close(got[1], water.background()[0])
-    off = Rig(s, [0], bank, proj, load_config("cpu-quick", ["medium=off"]), "cpu")
+    off = Rig(s, [0], bank, proj, load_config("cpu-quick", ["medium=off"]).rig, "cpu")
     torch.testing.assert_close(off.composite(c, out, 0.0), c)
 
 

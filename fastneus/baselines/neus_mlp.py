@@ -31,51 +31,53 @@ import numpy as np
 import torch
 import torch.nn as nn
 
+from fastneus.config import check, coerce, knob
 from fastneus.errors import FastneusError
 from fastneus.kernels.render import render_pattern_torch
 from fastneus.train.rays import RayBank, build_projection
 from fastneus.train.guard import finite_step
 
 
-@dataclass
+@dataclass(frozen=True)
 class BaselineConfig:
-    """Knobs of the reference ActiveNeuS (defaults = the paper / NeuS values)."""
+    """Knobs of the reference ActiveNeuS (defaults = the paper / NeuS values), parsed and checked by
+    the same code as the run config (:func:`fastneus.config.coerce`, :func:`fastneus.config.check`)."""
 
-    seed: int = 0
-    frames: list[int] | None = None    # training frames (None = all)
+    seed: int = knob(0, "random seed", lo=0, hi=2 ** 32 - 1)
+    frames: list[int] | None = knob(None, "training frames (null = all)")
     # rays and samples
-    n_rays: int = 512
-    n_samples: int = 64                # stratified samples per ray
-    n_importance: int = 64             # hierarchical samples per ray
-    up_sample_steps: int = 4           # NeuS up-sampling rounds (n_importance / steps each)
-    perturb: bool = True
-    bound: str = "sphere"              # for meshing (the sampler always uses the unit sphere)
-    background: float = 0.0
-    eval_chunk: int = 2048             # cap on rays per chunk when rendering images (memory)
+    n_rays: int = knob(512, "rays per step", lo=1)
+    n_samples: int = knob(64, "stratified samples per ray", lo=1)
+    n_importance: int = knob(64, "hierarchical samples per ray", lo=0)
+    up_sample_steps: int = knob(4, "NeuS up-sampling rounds (n_importance / steps each)", lo=1)
+    perturb: bool = knob(True, "jitter the stratified samples")
+    bound: str = knob("sphere", "for meshing (the sampler always uses the unit sphere)", choices=("sphere", "box"))
+    background: float = knob(0.0, "background colour", lo=0.0, hi=1.0)
+    eval_chunk: int = knob(2048, "cap on rays per chunk when rendering images (memory)", lo=1)
     # networks
-    multires: int = 6                  # PE frequencies of x
-    multires_view: int = 4             # PE frequencies of the view direction
-    sdf_hidden: int = 256
-    sdf_layers: int = 8
-    skip_in: tuple[int, ...] = (4,)
-    feature_dim: int = 256
-    color_hidden: int = 256
-    color_layers: int = 4
-    weight_norm: bool = True
-    init_radius: float = 0.5           # NeuS geometric-init bias
-    variance_init: float = 0.3
+    multires: int = knob(6, "positional-encoding frequencies of x", lo=0, hi=16)
+    multires_view: int = knob(4, "positional-encoding frequencies of the view direction", lo=0, hi=16)
+    sdf_hidden: int = knob(256, "SDF MLP width", lo=1)
+    sdf_layers: int = knob(8, "SDF MLP layers", lo=1, hi=32)
+    skip_in: tuple[int, ...] = knob((4,), "SDF layers that take the input again (skip connections)")
+    feature_dim: int = knob(256, "geometry features passed to the colour MLP", lo=1)
+    color_hidden: int = knob(256, "colour MLP width", lo=1)
+    color_layers: int = knob(4, "colour MLP layers", lo=1, hi=32)
+    weight_norm: bool = knob(True, "weight normalisation of the linear layers")
+    init_radius: float = knob(0.5, "NeuS geometric-init bias", lo=0.0, hi=1.0, lo_open=True)
+    variance_init: float = knob(0.3, "initial NeuS sharpness: inv_s = exp(10 v)", lo=-0.69, hi=1.38)
     # optimisation
-    lr: float = 5e-4
-    warmup_steps: int = 5000
-    end_steps: int = 200_000
-    decay_to: float = 0.05
-    eikonal_weight: float = 0.1
-    cos_anneal_steps: int = 50_000
+    lr: float = knob(5e-4, "learning rate", lo=0.0, lo_open=True)
+    warmup_steps: int = knob(5000, "linear lr warm-up steps", lo=0)
+    end_steps: int = knob(200_000, "steps of the run", lo=1)
+    decay_to: float = knob(0.05, "final lr factor", lo=0.0, hi=1.0, lo_open=True)
+    eikonal_weight: float = knob(0.1, "eikonal term weight", lo=0.0)
+    cos_anneal_steps: int = knob(50_000, "NeuS cos-anneal steps", lo=0)
     # projection / illumination
-    use_pattern: bool = True
-    learn_illum: bool = True
-    illum_warmup_steps: int = 5000
-    illum_init: str = "scene"          # scene | ones
+    use_pattern: bool = knob(True, "model the projected pattern (false = passive NeuS)")
+    learn_illum: bool = knob(True, "learn i_r, i_b")
+    illum_warmup_steps: int = knob(5000, "i_r, i_b frozen for these steps", lo=0)
+    illum_init: str = knob("scene", "start i_r, i_b at the scene's values | ones", choices=("scene", "ones"))
 
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)
@@ -83,25 +85,15 @@ class BaselineConfig:
 
 def baseline_config(overrides: dict | None = None) -> BaselineConfig:
     """Defaults with ``overrides`` (name -> value, or ``key=value`` strings' parsed values) applied."""
-    cfg = BaselineConfig()
-    known = {f.name: f for f in dataclasses.fields(cfg)}
+    known = {f.name: f for f in dataclasses.fields(BaselineConfig)}
+    values = {}
     for k, v in (overrides or {}).items():
         if k not in known:
-            raise FastneusError(f"unknown baseline config key; known: {', '.join(sorted(known))}", field=k)
-        default = getattr(cfg, k)
-        if isinstance(v, str):
-            import yaml
-
-            v = yaml.safe_load(v)
-        if isinstance(default, bool):
-            v = bool(v)
-        elif isinstance(default, int) and not isinstance(default, bool):
-            v = int(v)
-        elif isinstance(default, float):
-            v = float(v)
-        elif isinstance(default, tuple):
-            v = tuple(int(x) for x in (v if isinstance(v, (list, tuple)) else [v]))
-        setattr(cfg, k, v)
+            raise FastneusError(f"unknown baseline config key; known: {', '.join(sorted(known))}", field=str(k))
+        values[k] = coerce(known[k], v, "baseline config", k)
+    cfg = BaselineConfig(**values)
+    for f in dataclasses.fields(cfg):
+        check(f, getattr(cfg, f.name), "baseline config", f.name)
     if cfg.n_importance % max(1, cfg.up_sample_steps):
         raise FastneusError("n_importance must be a multiple of up_sample_steps", field="n_importance")
     return cfg

@@ -68,6 +68,7 @@ VERBS = {
     "train": "fastneus.cli.train", "oneshot": "fastneus.cli.train",
     "mesh": "fastneus.cli.export", "render": "fastneus.cli.export", "eval": "fastneus.cli.export",
     "convert": "fastneus.cli.formats", "import-calib": "fastneus.cli.formats",
+    "config": "fastneus.cli.config",
 }
 # verb modules, in the order shown by --help
 VERB_MODULES = list(dict.fromkeys(VERBS.values()))
@@ -117,6 +118,9 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt as e:  # training turns Ctrl-C into one carrying where it saved
         print(f"fastneus {args.verb}: interrupted" + (f": {e}" if str(e) else ""), file=sys.stderr)
         return 130
+    except BrokenPipeError:  # `fastneus config | head`: the reader left; not an error
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 0
     except OSError as e:  # the environment (permissions, disk full, a file in the way), not a bug
         where = ": ".join(str(x) for x in (e.filename, e.filename2) if x)
         print(f"fastneus {args.verb}: error: {where + ': ' if where else ''}{e.strerror or e}", file=sys.stderr)

@@ -54,7 +54,7 @@ def run_demo(out: Path, device: str, overrides: list[str] | None = None, console
                                illum=s["illum"], seed=0, device=device, focal=s.get("focal"))
         con.print(f"    {scene_dir} ({time.perf_counter() - t:.1f}s); look at {scene_dir / 'contact_sheet.png'}")
     cfg = load_config(s["preset"], overrides)
-    con.print(f"[bold]2/3 reconstruct[/bold]: preset {cfg.preset}, {cfg.steps} steps on {device}")
+    con.print(f"[bold]2/3 reconstruct[/bold]: preset {cfg.run.preset}, {cfg.run.steps} steps on {device}")
     if (out / "run").is_dir() and any((out / "run").iterdir()):
         con.print(f"    replacing the previous demo run in {out / 'run'}")
     # the demo owns its run folder: running it again replaces the previous demo run

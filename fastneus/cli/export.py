@@ -1,38 +1,12 @@
 """Verbs ``mesh``, ``render`` and ``eval`` on a trained run folder."""
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 from fastneus.cli import add_device_arg, resolve_device
 from fastneus.errors import FastneusError
 from fastneus.io import check_out_dir, confined, json_text
-
-
-def open_run(run: str, device: str, scene: str | None = None):
-    """Scene + trainer (weights loaded) of a run folder."""
-    from fastneus.formats.detect import load_scene
-    from fastneus.train.trainer import trainer_from_run
-
-    rp = Path(run)
-    if not rp.is_dir():
-        raise FastneusError("run folder not found", file=run)
-    if scene is None:
-        meta = rp / "run.json"
-        if not meta.is_file():
-            raise FastneusError("run.json missing; pass --scene", file=str(meta))
-        try:
-            scene = json.loads(meta.read_text())["scene"]
-        except (OSError, UnicodeDecodeError, ValueError, KeyError, TypeError, RecursionError) as e:
-            raise FastneusError(f"unreadable run metadata: {type(e).__name__}: {e}".splitlines()[0],
-                                file=str(meta), field="scene") from None
-        if not isinstance(scene, str) or not scene:
-            raise FastneusError(f"expected the scene folder's path, got {scene!r}", file=str(meta), field="scene")
-        if not Path(scene).exists():
-            raise FastneusError(f"the run's scene {scene} is gone (moved?); pass --scene DIR", file=str(meta),
-                                field="scene")
-    sc = load_scene(scene)
-    return sc, trainer_from_run(sc, rp, device)
+from fastneus.pipeline import open_run
 
 
 def _check_frames(frames: list[int], scene) -> list[int]:
@@ -60,8 +34,8 @@ def _mesh(args) -> int:
         check_out_dir(Path(args.out).parent)
     device = resolve_device(args.device)
     scene, tr = open_run(args.run, device, args.scene)
-    mesh = extract_mesh_arrays(tr.field, scene, args.resolution or tr.cfg.mesh_resolution, tr.device,
-                               bound=tr.cfg.bound, allowed=tr.seen)
+    mesh = extract_mesh_arrays(tr.field, scene, args.resolution or tr.cfg.export.mesh_resolution, tr.device,
+                               bound=tr.cfg.rays.bound, allowed=tr.seen)
     out = Path(args.out) if args.out else Path(args.run) / "mesh.ply"
     with confined(out.parent):  # mesh.ply as a link into another folder is refused, not followed
         save_mesh(mesh, out)

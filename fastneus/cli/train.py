@@ -57,8 +57,8 @@ def _run(args, tag: str, default_preset: str, oneshot_frame: int | None = None) 
         cfg = load_config(preset, list(args.overrides or []) + threads_override(args), base=base)
     con = _console()
     con.print(f"[bold]fastneus {tag}[/bold]: scene {args.scene} ({len(scene.frames)} frames, "
-              f"{len(cfg.frames) if cfg.frames else len(scene.frames)} used), preset {cfg.preset}, "
-              f"device {device}, backend {cfg.backend} -> {out}")
+              f"{len(cfg.run.frames) if cfg.run.frames else len(scene.frames)} used), preset {cfg.run.preset}, "
+              f"device {device}, backend {cfg.run.backend} -> {out}")
     _, metrics = train_scene(scene, cfg, out, device, console=con, resume=args.resume, overwrite=args.overwrite,
                              clock=clock)
     show = [k for k in ("chamfer_gt2rec_mm", "chamfer_gt2rec_filtered_mm", "visible_gt2rec_mm", "fscore",

@@ -154,9 +154,9 @@ def render_frames(trainer, frames: list[int], chunk: int = 8192) -> dict[int, di
                              i_r=i_r, i_b=i_b, chunk=chunk)
         if rig is not None:  # in water: attenuation + back-scatter (fastneus.train.rig)
             with torch.no_grad():
-                color, texture = (rig.composite(r[k], r, cfg.background) for k in ("color", "texture"))
+                color, texture = (rig.composite(r[k], r, cfg.rays.background) for k in ("color", "texture"))
         else:
-            bg = cfg.background * (1 - r["opacity"])[:, None]
+            bg = cfg.rays.background * (1 - r["opacity"])[:, None]
             color, texture = r["color"] + bg, r["texture"] + bg
         out[i] = {
             "color": color.numpy().reshape(h, w, 3),

@@ -9,6 +9,7 @@ the MLP only), on 1x instead of 5x the points.
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import torch
@@ -25,38 +26,40 @@ class SDFField(nn.Module):
     """Hash-grid SDF and colour networks in normalised space ([-1, 1]^3).
 
     Args:
-        cfg: a :class:`fastneus.config.Config` (grid and network sizes).
+        hashgrid: the config's ``hashgrid`` section (table sizes, coarse-to-fine schedule).
+        network: the config's ``network`` section (MLP sizes, NeuS sharpness).
         device: torch device.
+        backend: kernel backend, ``warp`` or ``torch`` (the twins).
     """
 
-    def __init__(self, cfg, device: torch.device | str = "cpu"):
+    def __init__(self, hashgrid, network, device: torch.device | str = "cpu", backend: str = "warp"):
         super().__init__()
-        self.cfg = cfg
-        self.grid_cfg = HashGridConfig(levels=cfg.levels, features=cfg.features, log2_table=cfg.log2_table,
-                                       base_res=cfg.base_res, finest_res=cfg.finest_res)
+        self.hashgrid, self.network = hashgrid, network
+        self.grid_cfg = HashGridConfig(levels=hashgrid.levels, features=hashgrid.features, log2_table=hashgrid.log2_table,
+                                       base_res=hashgrid.base_res, finest_res=hashgrid.finest_res)
         self.resolutions = self.grid_cfg.resolutions()
         self.table = nn.Parameter(init_table(self.grid_cfg, device))
-        self.encode = get_op("hash_encode", cfg.backend)
-        self.encode_jac = get_op("hash_encode_jac", cfg.backend)
-        self.sdf_grad = getattr(cfg, "sdf_grad", "fd")
+        self.encode = get_op("hash_encode", backend)
+        self.encode_jac = get_op("hash_encode_jac", backend)
+        self.sdf_grad = network.sdf_grad
         if self.sdf_grad not in ("fd", "analytic"):
             raise ValueError(f"sdf_grad must be 'fd' or 'analytic', got {self.sdf_grad!r}")
-        n_feat = cfg.levels * cfg.features
+        n_feat = hashgrid.levels * hashgrid.features
 
         # geometry MLP: [x (3), hash features] -> [sdf, geo features]
         layers: list[nn.Module] = []
-        dims = [3 + n_feat] + [cfg.sdf_hidden] * cfg.sdf_layers + [1 + cfg.geo_features]
+        dims = [3 + n_feat] + [network.sdf_hidden] * network.sdf_layers + [1 + network.geo_features]
         for i in range(len(dims) - 1):
             lin = nn.Linear(dims[i], dims[i + 1])
-            self._geometric_init(lin, i == 0, i == len(dims) - 2, dims[i], cfg.init_radius)
+            self._geometric_init(lin, i == 0, i == len(dims) - 2, dims[i], network.init_radius)
             layers.append(lin)
             if i < len(dims) - 2:
                 layers.append(nn.Softplus(beta=100))
         self.sdf_net = nn.Sequential(*layers).to(device)
 
         # colour MLP: [x, normal, (view dir), geo features] -> D (sigmoid)
-        c_in = 3 + 3 + (3 if cfg.view_dependent else 0) + cfg.geo_features
-        cdims = [c_in] + [cfg.color_hidden] * cfg.color_layers + [3]
+        c_in = 3 + 3 + (3 if network.view_dependent else 0) + network.geo_features
+        cdims = [c_in] + [network.color_hidden] * network.color_layers + [3]
         clayers: list[nn.Module] = []
         for i in range(len(cdims) - 1):
             clayers.append(nn.Linear(cdims[i], cdims[i + 1]))
@@ -65,8 +68,8 @@ class SDFField(nn.Module):
         self.color_net = nn.Sequential(*clayers).to(device)
 
         # NeuS variance: inv_s = exp(10 v)
-        self.variance = nn.Parameter(torch.tensor([cfg.variance_init], device=device))
-        self.active_levels = cfg.levels
+        self.variance = nn.Parameter(torch.tensor([network.variance_init], device=device))
+        self.active_levels = hashgrid.levels
         self.inv_s_floor = 0.0
         self.register_buffer("_tetra", _TETRA.to(device), persistent=False)
 
@@ -95,20 +98,20 @@ class SDFField(nn.Module):
         sharpens too slowly for a budget of a few thousand steps. Both are fractions of the run,
         so a 5-s and a 10-min run pass through the same stages.
         """
-        c = self.cfg
+        c, g = self.network, self.hashgrid
         if c.inv_s_floor_end > 0:
             f = min(1.0, progress / c.inv_s_floor_frac) if c.inv_s_floor_frac > 0 else 1.0
             self.inv_s_floor = math.exp(math.log(c.inv_s_floor_start) * (1 - f) + math.log(c.inv_s_floor_end) * f)
-        if c.c2f_start_levels <= 0 or c.c2f_frac <= 0 or c.c2f_start_levels >= c.levels:
-            self.active_levels = c.levels
+        if g.c2f_start_levels <= 0 or g.c2f_frac <= 0 or g.c2f_start_levels >= g.levels:
+            self.active_levels = g.levels
         else:
-            f = min(1.0, progress / c.c2f_frac)
-            self.active_levels = min(c.levels, c.c2f_start_levels + int(math.floor(f * (c.levels - c.c2f_start_levels) + 1e-9)))
+            f = min(1.0, progress / g.c2f_frac)
+            self.active_levels = min(g.levels, g.c2f_start_levels + int(math.floor(f * (g.levels - g.c2f_start_levels) + 1e-9)))
 
     def normal_eps(self) -> float:
         """Finite-difference step tied to the finest active level (normalised units)."""
         res = self.resolutions[max(0, self.active_levels - 1)]
-        return max(self.cfg.normal_eps_min, 2.0 / res)
+        return max(self.network.normal_eps_min, 2.0 / res)
 
     def geometry(self, x: torch.Tensor) -> torch.Tensor:
         """SDF network output for points.
@@ -127,7 +130,7 @@ class SDFField(nn.Module):
         return self.geometry(x)[:, 0]
 
     def sdf_and_grad(self, x: torch.Tensor, with_curvature: bool = False):
-        """SDF, geometric features and SDF gradient (``cfg.sdf_grad``: finite or analytic).
+        """SDF, geometric features and SDF gradient (``network.sdf_grad``: finite or analytic).
 
         ``fd``: the centre and 4 tetrahedron taps go through the hash grid and MLP in one call
         (5N points). ``analytic``: features and d feats / d u from one ``hash_encode_jac``
@@ -216,7 +219,7 @@ class SDFField(nn.Module):
             [N, 3] in (0, 1).
         """
         n = normal / normal.norm(dim=-1, keepdim=True).clamp_min(1e-6)
-        parts = [x, n] + ([dirs] if self.cfg.view_dependent else []) + [geo]
+        parts = [x, n] + ([dirs] if self.network.view_dependent else []) + [geo]
         return torch.sigmoid(self.color_net(torch.cat(parts, dim=-1)))
 
     def inv_s(self) -> torch.Tensor:
@@ -233,10 +236,15 @@ class SDFField(nn.Module):
         with torch.no_grad():
             self.color_net[-1].bias.copy_(torch.log(m / (1 - m)).to(self.color_net[-1].bias.device))
 
-    def param_groups(self, cfg):
+    def without_coarse_to_fine(self) -> None:
+        """All hash levels from now on (a fitted initial surface set the fine levels already)."""
+        self.hashgrid = dataclasses.replace(self.hashgrid, c2f_start_levels=0)
+        self.active_levels = self.hashgrid.levels
+
+    def param_groups(self, optim):
         """Adam parameter groups: geometry (hash table, SDF MLP), colour MLP, variance."""
         return [
-            {"params": [self.table] + list(self.sdf_net.parameters()), "lr": cfg.lr, "name": "geometry"},
-            {"params": list(self.color_net.parameters()), "lr": cfg.lr, "name": "color"},
-            {"params": [self.variance], "lr": cfg.lr_variance, "name": "variance"},
+            {"params": [self.table] + list(self.sdf_net.parameters()), "lr": optim.lr, "name": "geometry"},
+            {"params": list(self.color_net.parameters()), "lr": optim.lr, "name": "color"},
+            {"params": [self.variance], "lr": optim.lr_variance, "name": "variance"},
         ]

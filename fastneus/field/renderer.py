@@ -29,11 +29,11 @@ def _identity_blur(n_proj: int, device) -> torch.Tensor:
 
 def pattern_pass_split(cfg, device) -> bool:
     """Whether the projected light is sampled in its own per-sample pass (``project_pattern``)
-    rather than inside the render kernel's per-ray loop (``cfg.pattern_pass``; ``auto``: on
+    rather than inside the render kernel's per-ray loop (``cfg.run.pattern_pass``; ``auto``: on
     CUDA, where a step has few rays of hundreds of samples each and the per-ray loop's chain
     of dependent pattern fetches left most of the GPU idle; on the CPU one thread walks many
     rays either way and the extra pass only adds memory traffic)."""
-    mode = getattr(cfg, "pattern_pass", "auto")
+    mode = cfg.run.pattern_pass
     return mode == "split" or (mode == "auto" and torch.device(device).type == "cuda")
 
 
@@ -56,18 +56,18 @@ def render_rays(field, bits: torch.Tensor, grid_res: int, proj, origins: torch.T
         jitter: random start offset per ray (training) or 0 (rendering).
         with_normals: also return per-ray weighted normals.
         curvature: also return the curvature residual per sample.
-        use_pattern: override ``cfg.use_pattern`` (False renders without projection).
+        use_pattern: override ``cfg.illum.use_pattern`` (False renders without projection).
     Returns:
         dict with color [B,3] ([B,K,3] for a [B,K] fidx), opacity [B], depth [B] (normalised t), texture [B,3],
         normal [B,3] (if asked), grad [S,3], curv [S] or None, n_samples (int).
     """
     device = origins.device
     n = origins.shape[0]
-    march = get_op("march_rays", cfg.backend)
-    render = get_op("render_pattern", cfg.backend)
+    march = get_op("march_rays", cfg.run.backend)
+    render = get_op("render_pattern", cfg.run.backend)
     jit = torch.rand(n, device=device) if jitter else torch.zeros(n, device=device)
-    offsets, counts, t0, t1, ray_index = march(origins, dirs, bits, grid_res, cfg.march_step,
-                                               cfg.max_samples_per_ray, jit, cfg.bound, 0.0)
+    offsets, counts, t0, t1, ray_index = march(origins, dirs, bits, grid_res, cfg.rays.march_step,
+                                               cfg.rays.max_samples_per_ray, jit, cfg.rays.bound, 0.0)
     s = t0.shape[0]
     if s == 0:
         return _empty(n, device, shots=fidx.shape[1] if fidx.dim() == 2 else 0)
@@ -76,7 +76,7 @@ def render_rays(field, bits: torch.Tensor, grid_res: int, proj, origins: torch.T
     pos = origins[ri] + d_s * ((t0 + t1) * 0.5)[:, None]
     sdf, geo, grad, curv = field.sdf_and_grad(pos, with_curvature=curvature)
     color = field.color(pos, grad, d_s, geo)
-    pattern_on = cfg.use_pattern if use_pattern is None else use_pattern
+    pattern_on = cfg.illum.use_pattern if use_pattern is None else use_pattern
     pat = proj.pattern if pattern_on else torch.full_like(proj.pattern, -1)
     blur, laser_on = getattr(proj, "blur", None), getattr(proj, "laser_on", None)
     port, sigma = getattr(proj, "port", None), getattr(proj, "sigma", None)
@@ -93,10 +93,10 @@ def render_rays(field, bits: torch.Tensor, grid_res: int, proj, origins: torch.T
         if b is not None or port is not None or sigma is not None or has_pattern:
             if b is None:
                 b = _identity_blur(pat.shape[1], device)
-            q_ext = get_op("project_pattern", cfg.backend)(pos, ray_index, offsets, counts, f, proj.K, proj.W,
+            q_ext = get_op("project_pattern", cfg.run.backend)(pos, ray_index, offsets, counts, f, proj.K, proj.W,
                                                            pat, proj.store, b, port=port, sigma=sigma)
         if laser_on is not None and pattern_on:
-            ql = get_op("laser_light", cfg.backend)(pos, ray_index, offsets, counts, f, proj.W, laser_on,
+            ql = get_op("laser_light", cfg.run.backend)(pos, ray_index, offsets, counts, f, proj.W, laser_on,
                                                     proj.planes)
             q_ext = ql if q_ext is None else q_ext + ql
         return q_ext

@@ -33,7 +33,7 @@ class ColmapImage:
 
     @property
     def cam_to_world(self) -> np.ndarray:
-        from fastneus.data.scene import rigid_inverse
+        from fastneus.geometry.cameras import rigid_inverse
 
         return rigid_inverse(self.world_to_cam)
 

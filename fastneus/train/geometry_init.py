@@ -243,7 +243,7 @@ class SurfacePrior:
 def fit_batch(cfg) -> int:
     """Points per step of the init fit (an eighth of the step's sample budget, 1024-8192); the
     training prior uses half of it."""
-    return int(min(8192, max(1024, cfg.target_samples // 8)))
+    return int(min(8192, max(1024, cfg.rays.target_samples // 8)))
 
 
 def fit_sdf_to_points(field, prior: SurfacePrior, steps: int, lr: float = 1e-2, batch: int = 8192,
@@ -273,9 +273,9 @@ def initialise_geometry(trainer) -> str | None:
     still has weight, so a resumed run goes on as it would have. Returns a one-line note, or None
     when the sphere initialisation stays (nothing to say)."""
     cfg = trainer.cfg
-    mode = getattr(cfg, "init_geometry", "sphere")
+    mode = cfg.init.init_geometry
     resumed = trainer.step != 0
-    if mode == "sphere" or resumed and (cfg.prior_weight <= 0 or trainer.progress() >= cfg.prior_frac):
+    if mode == "sphere" or resumed and (cfg.init.prior_weight <= 0 or trainer.progress() >= cfg.init.prior_frac):
         return None
     groups = decodable_views(trainer.scene, trainer.frames)
     swept = None if groups is not None else sweepable_frames(trainer.scene, trainer.frames)
@@ -314,12 +314,14 @@ def initialise_geometry(trainer) -> str | None:
         trainer.prior = prior
         return (f"geometry prior rebuilt on resume: {what} ({P.shape[0]} points from {n_src}, "
                 f"{time.perf_counter() - t:.1f} s)")
-    cfg.c2f_start_levels = 0  # see the module docstring; recorded in the run's config
+    # see the module docstring; recorded in the run's saved config so a resumed run keeps it
+    trainer.cfg = cfg = cfg.replace(c2f_start_levels=0)
+    trainer.field.without_coarse_to_fine()
     trainer.field.set_progress(0.0)
-    loss = fit_sdf_to_points(trainer.field, prior, cfg.init_geometry_steps, lr=cfg.lr, batch=batch,
+    loss = fit_sdf_to_points(trainer.field, prior, cfg.init.init_geometry_steps, lr=cfg.optim.lr, batch=batch,
                              generator=trainer.gen)
-    if cfg.prior_weight > 0:
+    if cfg.init.prior_weight > 0:
         trainer.prior = prior
     return (f"geometry init: {mode} -> {what} ({P.shape[0]} points from {n_src}, "
-            f"{cfg.init_geometry_steps} fit steps, loss {loss:.4f}, {time.perf_counter() - t:.1f} s of the budget); "
+            f"{cfg.init.init_geometry_steps} fit steps, loss {loss:.4f}, {time.perf_counter() - t:.1f} s of the budget); "
             "coarse-to-fine off")

@@ -167,10 +167,10 @@ class ShotBank:
 
 def make_bank(scene, frames: list[int], device, cfg, refraction: bool = True, **kw):
     """The trainer's pixel store: a :class:`ShotBank` when a viewpoint has several shots (and
-    ``cfg.group_shots``), else a :class:`RayBank` (one ray per frame pixel). Cameras behind a
+    ``cfg.rays.group_shots``), else a :class:`RayBank` (one ray per frame pixel). Cameras behind a
     flat port (``refraction``) take the RayBank, which casts refracted rays, and so does pose
     refinement (its corrections index the bank's per-frame camera tables)."""
     ported = refraction and any(scene.frame_camera(i).port is not None for i in frames)
-    if cfg.group_shots and not ported and not cfg.pose_refine and is_multishot(scene, frames):
-        return ShotBank(scene, frames, device, shots=cfg.shots_per_ray, **kw)
+    if cfg.rays.group_shots and not ported and not cfg.rig.pose_refine and is_multishot(scene, frames):
+        return ShotBank(scene, frames, device, shots=cfg.rays.shots_per_ray, **kw)
     return RayBank(scene, frames, device, refraction=refraction, **kw)

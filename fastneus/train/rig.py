@@ -91,13 +91,16 @@ class Rig(torch.nn.Module):
         frames: training frame indices (rows of the ray bank and of ``proj``).
         bank: the trainer's :class:`fastneus.train.rays.RayBank` (camera rotations per row).
         proj: the trainer's :class:`fastneus.train.rays.Projection` (uncorrected).
-        cfg: run config (``pose_refine``, ``pose_anchor``, ``lr_pose``, ``pose_warmup_frac``).
+        cfg: the config's ``rig`` section (which corrections, their learning rates and warm-ups).
         device: torch device.
+        split_patterns: the renderer samples patterns in a separate pass
+            (:func:`fastneus.field.renderer.pattern_pass_split`), so the projection op is needed.
     """
 
-    def __init__(self, scene, frames: list[int], bank, proj, cfg, device):
+    def __init__(self, scene, frames: list[int], bank, proj, cfg, device, split_patterns: bool = False):
         super().__init__()
         self.scene, self.frames, self.cfg = scene, list(frames), cfg
+        self.split_patterns = split_patterns
         self.device = torch.device(device)
         self.radius = float(scene.bounds.radius)
         self.proj_ids = list(scene.projectors.keys())
@@ -143,7 +146,7 @@ class Rig(torch.nn.Module):
         for k, pid in enumerate(self.proj_ids):
             p2c = scene.projectors[pid].proj_to_cam
             if p2c is not None:
-                from fastneus.data.scene import rigid_inverse
+                from fastneus.geometry.cameras import rigid_inverse
 
                 A[:, k] = torch.as_tensor(rigid_inverse(p2c))
                 rigged[:, k] = True
@@ -244,22 +247,20 @@ class Rig(torch.nn.Module):
 
     def kernel_ops(self) -> tuple[str, ...]:
         """Extra kernel ops a training step uses (compiled before the clock starts)."""
-        from fastneus.field.renderer import pattern_pass_split
-
         q_ext = self.blur_on or self.medium_on or self._proj.laser_on is not None or self._proj.port is not None \
-            or pattern_pass_split(self.cfg, self.device)
+            or self.split_patterns
         ops = ("project_pattern",) if q_ext else ()
         return ops + (("laser_light",) if self._proj.laser_on is not None else ())
 
-    def param_groups(self, cfg) -> list[dict]:
+    def param_groups(self) -> list[dict]:
         """Adam groups of the enabled parts (names start with ``rig_``)."""
         groups = []
         if self.pose_on:
-            groups.append({"params": [self.cam_xi, self.proj_xi], "lr": cfg.lr_pose, "name": "rig_pose"})
+            groups.append({"params": [self.cam_xi, self.proj_xi], "lr": self.cfg.lr_pose, "name": "rig_pose"})
         if self.blur_on:
-            groups.append({"params": [self.blur_raw], "lr": cfg.lr_blur, "name": "rig_blur"})
+            groups.append({"params": [self.blur_raw], "lr": self.cfg.lr_blur, "name": "rig_blur"})
         if self.medium_on:
-            groups.append({"params": [self.log_beta_d, self.log_beta_b, self.b_inf_raw], "lr": cfg.lr_medium,
+            groups.append({"params": [self.log_beta_d, self.log_beta_b, self.b_inf_raw], "lr": self.cfg.lr_medium,
                            "name": "rig_medium"})
         return groups
 

@@ -30,12 +30,6 @@ RUN_DIRS = ("renders",)
 RUN_MARK = ".fastneus-run.json"      # "fastneus wrote the run files here": --overwrite may replace them
 LOCK_NAME = ".fastneus.lock"         # flock held by the process writing the run (holds its pid)
 ASIDE = ".fastneus-previous"         # the previous run during --overwrite, until the first checkpoint
-# config keys that shape the trained model (parameter sizes, which parameters exist, the
-# frames the rig's per-view corrections belong to): a resumed run cannot change them
-FROZEN = ("levels", "features", "log2_table", "base_res", "finest_res", "sdf_hidden", "sdf_layers", "geo_features",
-          "color_hidden", "color_layers", "view_dependent", "occ_resolution", "use_pattern", "frames",
-          "pose_refine", "pose_anchor", "projector_blur", "medium", "refraction")
-
 
 def _warn(msg: str) -> None:
     print(f"warning: {msg}", file=sys.stderr)
@@ -260,11 +254,11 @@ def resume_config(out: Path, overrides: list[str]):
 
     Raises:
         FastneusError: no saved config, or an override of a key that shapes the trained model
-            (:data:`FROZEN`), named.
+            (:func:`fastneus.config.model_keys`), named.
     """
     import yaml
 
-    from fastneus.config import config_from_dict, load_config
+    from fastneus.config import KEYS, config_from_dict, load_config, model_keys
 
     out = Path(out)
     path = out / "config.yaml"
@@ -283,9 +277,10 @@ def resume_config(out: Path, overrides: list[str]):
 
         saved = config_from_dict(load_checkpoint(out)["config"], str(out / CKPT_NAME))
     cfg = load_config(None, overrides, base=saved.to_dict())
-    for k in FROZEN:
-        if getattr(cfg, k) != getattr(saved, k):
-            raise FastneusError(f"cannot change {k} of a trained model on --resume (the run has {getattr(saved, k)!r},"
-                                f" got {getattr(cfg, k)!r}); start a new run (--overwrite or another --out) to change "
-                                "it", field=k)
+    new, old = cfg.flat(), saved.flat()
+    for k in sorted(model_keys()):
+        if new[k] != old[k]:
+            raise FastneusError(f"cannot change {k} of a trained model on --resume (the run has {old[k]!r}, got "
+                                f"{new[k]!r}); start a new run (--overwrite or another --out) to change it",
+                                field=f"{KEYS[k][0]}.{k}")
     return cfg

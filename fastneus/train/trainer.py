@@ -15,7 +15,7 @@ import torch
 from fastneus.config import Config, config_from_dict, save_config
 from fastneus.errors import FastneusError
 from fastneus.field.model import SDFField
-from fastneus.field.renderer import render_rays
+from fastneus.field.renderer import pattern_pass_split, render_rays
 from fastneus.train.geometry_init import fit_batch
 from fastneus.io import open_append
 from fastneus.kernels.occupancy import OccupancyGrid
@@ -37,13 +37,13 @@ def resolve_masks(scene, frames: list[int], cfg: Config) -> tuple[bool, str]:
     """
     have = sum(scene.frames[i].mask is not None for i in frames)
     n = len(frames)
-    if cfg.masks == "on" and have < n:
+    if cfg.loss.masks == "on" and have < n:
         raise FastneusError(f"masks=on but only {have} of {n} training frames have a mask", field="masks")
-    used = cfg.mask_weight > 0 and (cfg.masks == "on" or (cfg.masks == "auto" and have == n))
-    why = {"on": "asked for", "off": "turned off", "auto": f"{have}/{n} training frames have masks"}[cfg.masks]
-    if cfg.masks != "off" and cfg.mask_weight <= 0:
+    used = cfg.loss.mask_weight > 0 and (cfg.loss.masks == "on" or (cfg.loss.masks == "auto" and have == n))
+    why = {"on": "asked for", "off": "turned off", "auto": f"{have}/{n} training frames have masks"}[cfg.loss.masks]
+    if cfg.loss.masks != "off" and cfg.loss.mask_weight <= 0:
         why += "; mask_weight is 0"
-    return used, f"masks: {cfg.masks} -> {'on' if used else 'off'} ({why})"
+    return used, f"masks: {cfg.loss.masks} -> {'on' if used else 'off'} ({why})"
 
 
 def resolve_bg_prior(cfg: Config, masks_used: bool, bg_fraction: float) -> tuple[bool, str]:
@@ -59,11 +59,11 @@ def resolve_bg_prior(cfg: Config, masks_used: bool, bg_fraction: float) -> tuple
     """
     if masks_used:
         return False, "background prior: off (masks are used)"
-    if cfg.bg_prior == "off" or cfg.bg_weight <= 0:
+    if cfg.loss.bg_prior == "off" or cfg.loss.bg_weight <= 0:
         return False, "background prior: off"
-    share = f"{100 * bg_fraction:.0f}% of training pixels are background colour {cfg.background:g}"
-    used = cfg.bg_prior == "on" or bg_fraction >= 0.05
-    return used, f"background prior: {cfg.bg_prior} -> {'on' if used else 'off'} ({share})"
+    share = f"{100 * bg_fraction:.0f}% of training pixels are background colour {cfg.rays.background:g}"
+    used = cfg.loss.bg_prior == "on" or bg_fraction >= 0.05
+    return used, f"background prior: {cfg.loss.bg_prior} -> {'on' if used else 'off'} ({share})"
 
 
 def _configure_threads(requested: int) -> tuple[int, str]:
@@ -96,58 +96,59 @@ class Trainer:
         self.scene, self.cfg, self.out, self.console = scene, cfg, Path(out), console
         self.device = torch.device(device)
         self.out.mkdir(parents=True, exist_ok=True)
-        self.threads, self.threads_note = _configure_threads(cfg.threads)
-        torch.manual_seed(cfg.seed)
-        np.random.seed(cfg.seed)
+        self.threads, self.threads_note = _configure_threads(cfg.run.threads)
+        torch.manual_seed(cfg.run.seed)
+        np.random.seed(cfg.run.seed)
         n = len(scene.frames)
-        self.frames = list(range(n)) if cfg.frames is None else list(cfg.frames)
+        self.frames = list(range(n)) if cfg.run.frames is None else list(cfg.run.frames)
         bad = [f for f in self.frames if not 0 <= f < n]
         if bad or not self.frames:
             raise FastneusError(f"frame indices {bad or '[]'} out of range 0..{n - 1}", field="frames")
         self.masks_used, self.masks_note = resolve_masks(scene, self.frames, cfg)
-        want_bg = not self.masks_used and cfg.bg_prior != "off" and cfg.bg_weight > 0
+        want_bg = not self.masks_used and cfg.loss.bg_prior != "off" and cfg.loss.bg_weight > 0
         # multi-shot viewpoints (e.g. Gray code) share one ray per pixel across their shots (fastneus.train.multishot)
         self.bank = make_bank(scene, self.frames, self.device, cfg, load_masks=self.masks_used,
-                              brightness_cdf=cfg.bright_fraction > 0,
-                              background=cfg.background if want_bg else None, bg_tolerance=cfg.bg_tolerance,
-                              refraction=cfg.refraction)
+                              brightness_cdf=cfg.rays.bright_fraction > 0,
+                              background=cfg.rays.background if want_bg else None, bg_tolerance=cfg.loss.bg_tolerance,
+                              refraction=cfg.rig.refraction)
         if getattr(self.bank, "empty_masks", None):  # all-zero masks: the object is outside those views (or a wrong file)
             self.masks_note += f"; warning: empty (all-zero) mask {', '.join(self.bank.empty_masks)}"
         self.bg_used, self.bg_note = resolve_bg_prior(cfg, self.masks_used, self.bank.bg_fraction)
-        self.proj = build_projection(scene, self.frames, self.device, refraction=cfg.refraction)
-        self.rig = Rig(scene, self.frames, self.bank, self.proj, cfg, self.device)  # real-rig corrections
-        self.field = SDFField(cfg, self.device)
+        self.proj = build_projection(scene, self.frames, self.device, refraction=cfg.rig.refraction)
+        self.rig = Rig(scene, self.frames, self.bank, self.proj, cfg.rig, self.device,  # real-rig corrections
+                       split_patterns=pattern_pass_split(cfg, self.device))
+        self.field = SDFField(cfg.hashgrid, cfg.network, self.device, backend=cfg.run.backend)
         self.field.init_color_bias(self.bank.mean_rgb())
-        self.grid = OccupancyGrid(cfg.occ_resolution, self.device)
+        self.grid = OccupancyGrid(cfg.occupancy.occ_resolution, self.device)
         self.on_saved = None  # called after each checkpoint write (pipeline.train_scene)
         self.seen = None
-        if cfg.min_views > 0:
+        if cfg.occupancy.min_views > 0:
             from fastneus.train.visibility import seen_cells
 
-            self.seen = seen_cells(scene, self.frames, cfg.occ_resolution, self.device, cfg.min_views)
+            self.seen = seen_cells(scene, self.frames, cfg.occupancy.occ_resolution, self.device, cfg.occupancy.min_views)
             self.grid.set_allowed(self.seen)
         ill = scene.illumination
-        if cfg.illum_init == "ones" or ill is None:
+        if cfg.illum.illum_init == "ones" or ill is None:
             ir0, ib0 = 1.0, 1.0
         else:
             ir0, ib0 = float(ill.i_r), float(ill.i_b)
         # log-parametrised so i_r, i_b stay positive
         self.log_ir = torch.nn.Parameter(torch.tensor([math.log(max(ir0, 1e-4))], device=self.device))
         self.log_ib = torch.nn.Parameter(torch.tensor([math.log(max(ib0, 1e-4))], device=self.device))
-        groups = self.field.param_groups(cfg) + [
-            {"params": [self.log_ir, self.log_ib], "lr": cfg.lr_illum, "name": "illum"}] + self.rig.param_groups(cfg)
+        groups = self.field.param_groups(cfg.optim) + [
+            {"params": [self.log_ir, self.log_ib], "lr": cfg.optim.lr_illum, "name": "illum"}] + self.rig.param_groups()
         for g in groups:
             g["base_lr"] = g["lr"]
-        self.opt = Adam(groups, betas=(0.9, 0.99), eps=cfg.adam_eps)  # torch.optim's would import TorchDynamo (4 s)
+        self.opt = Adam(groups, betas=(0.9, 0.99), eps=cfg.optim.adam_eps)  # torch.optim's would import TorchDynamo (4 s)
         self.step = 0
-        self.n_rays = cfg.init_rays
+        self.n_rays = cfg.rays.init_rays
         self.elapsed = 0.0          # training seconds, kept across resume
         self.skipped = 0            # NaN/Inf steps skipped
         self.empty_steps = 0        # consecutive steps whose rays found no occupied cell
         self.history: list[dict] = []
         self._grid_open = False     # grid forced fully occupied (warm-up) since the last update
         self.gen = torch.Generator(device=self.device)
-        self.gen.manual_seed(cfg.seed)
+        self.gen.manual_seed(cfg.run.seed)
         self.stop_signal: str | None = None  # set by interrupt.stop_on_signal: stop after this step
         self.prior = None  # geometry_init.SurfacePrior kept as a fading prior after a decoded/swept init
         self.clock = None  # fastneus.timing.RunClock of the run (pipeline.train_scene): fit() records its phases
@@ -162,29 +163,29 @@ class Trainer:
         Every schedule (warm-ups, coarse-to-fine, cos-anneal, sharpness floor, lr decay) reads
         this, so the same preset works at 5 s and at 10 minutes.
         """
-        if self.cfg.time_budget > 0:
-            p = self.elapsed / self.cfg.time_budget
+        if self.cfg.run.time_budget > 0:
+            p = self.elapsed / self.cfg.run.time_budget
         else:
-            p = self.step / max(1, self.cfg.steps)
+            p = self.step / max(1, self.cfg.run.steps)
         return min(1.0, p)
 
     def finished(self) -> bool:
         if self.stop_signal is not None:
             return True
-        if self.cfg.time_budget > 0:
-            return self.elapsed >= self.cfg.time_budget
-        return self.step >= self.cfg.steps
+        if self.cfg.run.time_budget > 0:
+            return self.elapsed >= self.cfg.run.time_budget
+        return self.step >= self.cfg.run.steps
 
     def _set_lr(self, p: float) -> None:
         c = self.cfg
-        decay = c.decay_to + (1 - c.decay_to) * 0.5 * (1 + math.cos(math.pi * p))
-        f = 0.1 + 0.9 * p / c.warmup_frac if p < c.warmup_frac else decay
+        decay = c.optim.decay_to + (1 - c.optim.decay_to) * 0.5 * (1 + math.cos(math.pi * p))
+        f = 0.1 + 0.9 * p / c.optim.warmup_frac if p < c.optim.warmup_frac else decay
         # from a blind init (1, 1) the pattern term is several times too bright: waiting for the
         # geometry would let it carve the surface away, so fit it with the colours from the start
         # (geometry frozen meanwhile), then keep learning
-        start = 0.0 if c.illum_init == "ones" else c.illum_warmup_frac
-        learn_illum = c.learn_illum and c.use_pattern and p >= start
-        frozen = p < c.color_warmup_frac
+        start = 0.0 if c.illum.illum_init == "ones" else c.illum.illum_warmup_frac
+        learn_illum = c.illum.learn_illum and c.illum.use_pattern and p >= start
+        frozen = p < c.optim.color_warmup_frac
         for g in self.opt.param_groups:
             if g["name"] == "illum":
                 # decays with the rest: a constant Adam step of lr_illum on log(i) would leave i_r, i_b
@@ -199,21 +200,21 @@ class Trainer:
 
     def cos_anneal(self, p: float | None = None) -> float:
         p = self.progress() if p is None else p
-        return 1.0 if self.cfg.cos_anneal_frac <= 0 else min(1.0, p / self.cfg.cos_anneal_frac)
+        return 1.0 if self.cfg.loss.cos_anneal_frac <= 0 else min(1.0, p / self.cfg.loss.cos_anneal_frac)
 
     def update_grid(self, p: float) -> None:
         c = self.cfg
-        if p < c.occ_warmup_frac:
+        if p < c.occupancy.occ_warmup_frac:
             if not self._grid_open:
-                self.grid.update(self.field.sdf, 0.0, c.march_step, warmup=True)
+                self.grid.update(self.field.sdf, 0.0, c.rays.march_step, warmup=True)
                 self._grid_open = True
             return
-        if self.step % c.occ_update_every == 0 or self._grid_open:
+        if self.step % c.occupancy.occ_update_every == 0 or self._grid_open:
             self._grid_open = False
             # margin = half a cell diagonal keeps thin shells occupied once s is large
-            self.grid.update(self.field.sdf, float(self.field.inv_s().detach()), c.march_step,
-                             threshold=c.occ_threshold, margin=math.sqrt(3) / self.grid.resolution,
-                             backend=c.backend)
+            self.grid.update(self.field.sdf, float(self.field.inv_s().detach()), c.rays.march_step,
+                             threshold=c.occupancy.occ_threshold, margin=math.sqrt(3) / self.grid.resolution,
+                             backend=c.run.backend)
 
     # ------------------------------------------------------------------ one step
     def train_step(self) -> dict | None:
@@ -223,20 +224,20 @@ class Trainer:
         self.field.set_progress(p)
         self.update_grid(p)
         self._set_lr(p)
-        batch = self.rig.rays(self.bank.sample(self.n_rays, self.gen, bright_fraction=c.bright_fraction))
+        batch = self.rig.rays(self.bank.sample(self.n_rays, self.gen, bright_fraction=c.rays.bright_fraction))
         i_r, i_b = self.illumination()
         out = render_rays(self.field, self.grid.bits, self.grid.resolution, self.rig.projection(), batch["origins"],
                           batch["dirs"], batch["fidx"], c, i_r=i_r, i_b=i_b, cos_anneal=self.cos_anneal(p),
-                          jitter=True, curvature=c.curvature_weight > 0)
+                          jitter=True, curvature=c.loss.curvature_weight > 0)
         s = out["n_samples"]
         # adapt the ray count to the sample budget (s is known on the host from marching)
         mean_spr = max(1.0, s / self.n_rays)
-        self.n_rays = int(min(c.max_rays, max(c.min_rays, 0.8 * self.n_rays + 0.2 * c.target_samples / mean_spr)))
+        self.n_rays = int(min(c.rays.max_rays, max(c.rays.min_rays, 0.8 * self.n_rays + 0.2 * c.rays.target_samples / mean_spr)))
         if s == 0:
             # an empty grid would stall training for good: re-open it after a few empty steps
             self.empty_steps += 1
             if self.empty_steps >= 8:
-                self.grid.update(self.field.sdf, 0.0, c.march_step, warmup=True)
+                self.grid.update(self.field.sdf, 0.0, c.rays.march_step, warmup=True)
                 self.empty_steps = 0
             self.step += 1
             return None
@@ -244,7 +245,7 @@ class Trainer:
         # the camera clips at 1: a rendered value above it is a saturated pixel, not an error
         # (unclipped, bright pattern pixels would pull i_r down on Normal-light scenes)
         # [B, 3], or [B, K, 3] with K shots per ray (multi-shot); + water (fastneus.train.rig)
-        pred = self.rig.composite(out["color"], out, c.background).clamp(max=1.0)
+        pred = self.rig.composite(out["color"], out, c.rays.background).clamp(max=1.0)
         err = (pred - batch["rgb"]).abs()
         loss_rgb = err.mean()
         grad = out["grad"]
@@ -254,20 +255,20 @@ class Trainer:
         _, _, grad_r, _ = self.field.sdf_and_grad(xr)
         g_all = torch.cat([grad, grad_r])
         loss_eik = ((g_all.norm(dim=-1) - 1.0) ** 2).mean()
-        loss = loss_rgb + c.eikonal_weight * loss_eik
+        loss = loss_rgb + c.loss.eikonal_weight * loss_eik
         if self.masks_used and "mask" in batch:
             op = out["opacity"].clamp(1e-3, 1 - 1e-3)
-            loss = loss + c.mask_weight * torch.nn.functional.binary_cross_entropy(op, batch["mask"])
-        elif self.bg_used and "bg" in batch and p >= c.bg_start_frac:
+            loss = loss + c.loss.mask_weight * torch.nn.functional.binary_cross_entropy(op, batch["mask"])
+        elif self.bg_used and "bg" in batch and p >= c.loss.bg_start_frac:
             # one-sided: background-coloured pixels are pushed to zero opacity, others are free
-            ramp = min(1.0, (p - c.bg_start_frac) / c.bg_start_frac) if c.bg_start_frac > 0 else 1.0
+            ramp = min(1.0, (p - c.loss.bg_start_frac) / c.loss.bg_start_frac) if c.loss.bg_start_frac > 0 else 1.0
             op = out["opacity"].clamp(max=1 - 1e-3)
-            loss = loss - ramp * c.bg_weight * (batch["bg"] * torch.log1p(-op)).mean()
-        if self.prior is not None and p < c.prior_frac:
-            w = c.prior_weight * (1.0 - p / c.prior_frac)
+            loss = loss - ramp * c.loss.bg_weight * (batch["bg"] * torch.log1p(-op)).mean()
+        if self.prior is not None and p < c.init.prior_frac:
+            w = c.init.prior_weight * (1.0 - p / c.init.prior_frac)
             loss = loss + w * self.prior.loss(self.field, fit_batch(c) // 2, self.gen, eikonal=False)
-        if c.curvature_weight > 0 and out["curv"] is not None:
-            loss = loss + c.curvature_weight * out["curv"].abs().mean()
+        if c.loss.curvature_weight > 0 and out["curv"] is not None:
+            loss = loss + c.loss.curvature_weight * out["curv"].abs().mean()
         self.opt.zero_grad(set_to_none=True)
         loss.backward()
         stepped = finite_step(self.opt, loss)  # NaN/Inf guard
@@ -299,6 +300,9 @@ class Trainer:
 
         t0 = time.perf_counter()
         note = initialise_geometry(self)  # e.g. from decoded Gray code; its time counts as training
+        if self.cfg is not c:  # the init turned coarse-to-fine off: the saved config says what runs
+            c = self.cfg
+            save_config(c, self.out / "config.yaml")
         if note:
             self.elapsed += time.perf_counter() - t0
             if self.console is not None:
@@ -306,9 +310,9 @@ class Trainer:
         logf = open_append(self.out / "log.jsonl")  # never through a symbolic link
         last = {}
         samples_total, t_window, steps_window = 0, time.perf_counter(), 0
-        timed = c.time_budget > 0
+        timed = c.run.time_budget > 0
         # the bar counts steps, or tenths of a second of training when the run is a time budget
-        total = int(round(c.time_budget * 10)) if timed else c.steps
+        total = int(round(c.run.time_budget * 10)) if timed else c.run.steps
         done = (lambda: min(total, int(self.elapsed * 10))) if timed else (lambda: self.step)
         unit = "{task.completed}/{task.total} ds" if timed else "{task.completed}/{task.total}"
         columns = [TextColumn("[bold]train"), BarColumn(), TextColumn(unit),
@@ -319,14 +323,14 @@ class Trainer:
             while not self.finished():
                 t0 = time.perf_counter()
                 rec = self.train_step()
-                if self.device.type == "cuda" and (self.step % c.log_every == 0):
+                if self.device.type == "cuda" and (self.step % c.run.log_every == 0):
                     torch.cuda.synchronize(self.device)
                 self.elapsed += time.perf_counter() - t0
                 steps_window += 1
                 if rec is not None:
                     samples_total += rec["samples"]
                 end = self.finished()
-                if self.step % c.log_every == 0 or end or rec is None and self.step == 1:
+                if self.step % c.run.log_every == 0 or end or rec is None and self.step == 1:
                     if rec is not None:
                         now = time.perf_counter()
                         i_r, i_b = (float(x.detach()) for x in self.illumination())
@@ -347,7 +351,7 @@ class Trainer:
                                                     f"i_r {i_r:.3f} i_b {i_b:.3f} spr {last['samples_per_ray']:.0f} "
                                                     f"{last['it_s']:.1f} it/s"))
                 progress.update(task, completed=done())
-                if self.step % c.save_every == 0:
+                if self.step % c.run.save_every == 0:
                     t_save -= time.perf_counter()
                     self.save()
                     t_save += time.perf_counter()
@@ -380,7 +384,7 @@ class Trainer:
         if self.device.type == "cuda":
             ops += ("marching_cubes",)
         return prepare_kernels(self.device, say=self.console.print if self.console is not None else None,
-                               backend=self.cfg.backend, ops=ops, report=report)
+                               backend=self.cfg.run.backend, ops=ops, report=report)
 
     # ------------------------------------------------------------------ checkpoints
     def state(self) -> dict:
@@ -411,8 +415,8 @@ class Trainer:
         if with_optimizer:
             self.opt.load_state_dict(st["optimizer"])
             for g in self.opt.param_groups:  # base_lr may differ if the config changed
-                g["base_lr"] = {"geometry": self.cfg.lr, "color": self.cfg.lr, "variance": self.cfg.lr_variance,
-                                "illum": self.cfg.lr_illum}.get(g["name"], g["base_lr"])
+                g["base_lr"] = {"geometry": self.cfg.optim.lr, "color": self.cfg.optim.lr, "variance": self.cfg.optim.lr_variance,
+                                "illum": self.cfg.optim.lr_illum}.get(g["name"], g["base_lr"])
         if "gen" in st and self.device.type == "cpu":
             self.gen.set_state(st["gen"])
 
