@@ -23,3 +23,12 @@ def small_scene(tmp_path_factory):
     scene.gt_mesh = None
     scene.save()
     return out
+
+
+def one_line_error(capsys, *needles: str) -> str:
+    """The captured stderr: exactly one line, no traceback or "internal error", holding every needle."""
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "Traceback" not in err and "internal error" not in err, err
+    for n in needles:
+        assert n in err, (n, err)
+    return err

@@ -267,7 +267,10 @@ def test_analytic_grad_close_to_fd_on_sphere_init():
     x = x[x.norm(dim=-1) > 0.2]
     sa, _, ga, _ = fa.sdf_and_grad(x)
     sf, _, gf, _ = ffd.sdf_and_grad(x)
-    assert torch.equal(sa, fa.sdf(x)) and torch.equal(sa, sf), seed  # the same centre SDF
+    # the same centre SDF; the fd path evaluates it in one batch with its 4 taps, and the GEMM's
+    # blocking for that shape may round differently (seed 294913048: 6e-8), so a few ulp are allowed
+    assert torch.equal(sa, fa.sdf(x)), seed
+    torch.testing.assert_close(sa, sf, rtol=0, atol=1e-6, msg=f"seed {seed}")
     # the default step (2 / finest res = 0.016) blurs the Softplus(100) MLP's curvature by a few %
     err = (ga - gf).norm(dim=-1) / gf.norm(dim=-1)
     assert err.max() < 0.3 and err.median() < 0.03, f"seed {seed}: {err.max()}, {err.median()}"

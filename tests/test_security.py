@@ -6,6 +6,8 @@ the tests cannot pass vacuously.
 """
 from __future__ import annotations
 
+from conftest import one_line_error as _one_line_error
+
 import io
 import json
 import os
@@ -45,14 +47,6 @@ def _live(marker: Path, load) -> None:
     load()
     assert marker.exists(), "test payload is not live"
     marker.unlink()
-
-
-def _one_line_error(capsys, *needles: str) -> str:
-    err = capsys.readouterr().err.strip()
-    assert len(err.splitlines()) == 1 and "Traceback" not in err and "internal error" not in err, err
-    for n in needles:
-        assert n in err, (n, err)
-    return err
 
 
 @pytest.fixture(scope="module")

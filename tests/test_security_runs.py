@@ -6,6 +6,8 @@ Each run is a handful of steps on the 24x24 three-view sphere (conftest.small_sc
 """
 from __future__ import annotations
 
+from conftest import one_line_error as _one_line_error
+
 import json
 import os
 import shutil
@@ -16,14 +18,6 @@ import pytest
 
 from conftest import SMALL_RUN
 from fastneus.cli import main
-
-
-def _one_line_error(capsys, *needles: str) -> str:
-    err = capsys.readouterr().err.strip()
-    assert len(err.splitlines()) == 1 and "Traceback" not in err and "internal error" not in err, err
-    for n in needles:
-        assert n in err, (n, err)
-    return err
 
 
 def _snapshot(folder: Path) -> dict:

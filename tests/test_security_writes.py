@@ -10,6 +10,8 @@
 """
 from __future__ import annotations
 
+from conftest import one_line_error as _one_line
+
 import json
 import os
 import shutil
@@ -43,14 +45,6 @@ def _snapshot(folder: Path) -> dict:
             else:
                 snap[rel] = ("file", p.read_bytes(), stat.S_IMODE(p.stat().st_mode))
     return snap
-
-
-def _one_line(capsys, *needles: str) -> str:
-    err = capsys.readouterr().err.strip()
-    assert len(err.splitlines()) == 1 and "Traceback" not in err and "internal error" not in err, err
-    for n in needles:
-        assert n in err, (n, err)
-    return err
 
 
 def _sentinel(tmp_path: Path) -> Path:
