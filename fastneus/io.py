@@ -2,7 +2,7 @@
 
 A crash mid-write never leaves a truncated file in place of an earlier good one, and a
 command that finds bad input half-way through never leaves a half-written output folder
-(:func:`staged_dir`).
+(:func:`staged_output`).
 """
 from __future__ import annotations
 
@@ -67,6 +67,15 @@ def open_append(path: str | os.PathLike):
     return os.fdopen(fd, "a")
 
 
+def _read_umask() -> int:
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
+
+
+_UMASK = _read_umask()
+
+
 def atomic_write(path: str | os.PathLike, write: Callable[[str], None], suffix: str = "") -> None:
     """Call ``write(tmp_path)`` then rename the temp file onto ``path`` (never through a link, see :func:`confined`)."""
     path = Path(path)
@@ -76,6 +85,9 @@ def atomic_write(path: str | os.PathLike, write: Callable[[str], None], suffix: 
     os.close(fd)
     try:
         write(tmp)
+        # mkstemp makes the file 0600; a report or mesh in a shared lab folder must be readable as any
+        # file the user creates there (the umask decides)
+        os.chmod(tmp, 0o666 & ~_UMASK)
         os.replace(tmp, path)
     except BaseException:
         try:
@@ -151,40 +163,6 @@ def make_out_dir(path: str | os.PathLike, field: str = "--out") -> Path:
     except OSError as e:
         raise FastneusError(f"cannot create folder: {e.strerror}", file=p, field=field) from None
     return p
-
-
-@contextlib.contextmanager
-def staged_dir(out: str | os.PathLike, replace: tuple[str, ...] = (), field: str = "--out") -> Iterator[Path]:
-    """Build an output folder's content in a hidden sibling folder, then move it into ``out``.
-
-    If the body raises (bad input found half-way), ``out`` is left exactly as it was. On
-    success each top-level entry replaces the one of the same name in ``out``; folders, and
-    the folders named in ``replace`` even when the new output lacks them, are replaced whole
-    so no stale file of an earlier output stays behind. Other files in ``out`` are kept.
-
-    Yields:
-        The staging folder to write into.
-    """
-    out = check_out_dir(out, field)
-    make_out_dir(out.parent, field)
-    stage = Path(tempfile.mkdtemp(prefix=f".{out.name}.staging-", dir=out.parent))
-    try:
-        yield stage
-        out.mkdir(exist_ok=True)
-        names = sorted(e.name for e in stage.iterdir())
-        trash = Path(tempfile.mkdtemp(prefix=f".{out.name}.old-", dir=out.parent))
-        try:
-            for name in set(replace) | set(names):
-                old = out / name
-                if old.is_dir() and not old.is_symlink():
-                    os.replace(old, trash / name)
-            # folders first: the index file (scene.json, npz) arrives last
-            for name in sorted(names, key=lambda n: (stage / n).is_file()):
-                os.replace(stage / name, out / name)
-        finally:
-            shutil.rmtree(trash, ignore_errors=True)
-    finally:
-        shutil.rmtree(stage, ignore_errors=True)
 
 
 # --------------------------------------------------------------------------- outputs that hold user files

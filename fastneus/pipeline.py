@@ -11,6 +11,28 @@ from fastneus.errors import FastneusError
 from fastneus.io import atomic_write_json
 
 
+def provenance() -> dict:
+    """What made a run: fastneus's version, the command line and, for a git checkout of
+    fastneus, its commit (``+dirty`` with uncommitted changes); recorded in run.json."""
+    import shlex
+    import subprocess
+    import sys
+
+    from fastneus import __version__
+
+    out = {"fastneus_version": __version__, "command": shlex.join([Path(sys.argv[0]).name, *sys.argv[1:]])}
+    src = Path(__file__).resolve().parent.parent
+    try:
+        git = lambda *a: subprocess.run(["git", "-C", str(src), *a], capture_output=True, text=True,  # noqa: E731
+                                        timeout=5).stdout.strip()
+        commit = git("rev-parse", "HEAD") if (src / ".git").exists() else ""
+        if commit:
+            out["git_commit"] = commit + ("+dirty" if git("status", "--porcelain", "--untracked-files=no") else "")
+    except (OSError, subprocess.SubprocessError):
+        pass
+    return out
+
+
 def default_eval_frames(scene, train_frames: list[int], limit: int = 3) -> list[int]:
     """Frames to render for the report: the first training frame plus a few held-out ones."""
     held = [i for i in range(len(scene.frames)) if i not in set(train_frames)]
@@ -260,7 +282,7 @@ def _train_and_finish(trainer, scene, cfg: Config, out: Path, device: str, conso
         console.print(f"run length: {length}; every schedule is a fraction of it")
     atomic_write_json(out / "run.json", {"scene": str(scene.root), "device": str(device), "preset": cfg.run.preset,
                                          "threads": trainer.threads, "masks": trainer.masks_note,
-                                         "background_prior": trainer.bg_note})
+                                         "background_prior": trainer.bg_note, **provenance()})
     with stop_on_signal(trainer, out):
         last = trainer.fit(final_save=not finish)  # finish_run saves it right after mesh.ply
     if console is not None and last:

@@ -80,6 +80,9 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
         prog="fastneus",
         description="Fast ActiveNeuS: reconstruct surfaces from images lit by calibrated projectors.",
     )
+    from fastneus import __version__
+
+    parser.add_argument("--version", action="version", version=f"fastneus {__version__}")
     sub = parser.add_subparsers(dest="verb", metavar="<verb>")
     first = argv[0] if argv else None
     names = [VERBS[first]] if first in VERBS else VERB_MODULES

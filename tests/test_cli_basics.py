@@ -1,0 +1,43 @@
+"""Small things a user of the command line and of shared folders expects."""
+from __future__ import annotations
+
+import os
+import stat
+import subprocess
+import sys
+
+from fastneus import __version__
+from fastneus.cli import main
+from fastneus.io import atomic_write_text
+from fastneus.pipeline import provenance
+
+
+def test_version(capsys):
+    try:
+        main(["--version"])
+    except SystemExit as e:  # argparse's version action exits 0
+        assert e.code == 0
+    assert capsys.readouterr().out.strip() == f"fastneus {__version__}"
+
+
+def test_atomic_writes_follow_the_umask(tmp_path):
+    """mkstemp creates 0600 files: a report in a lab's shared folder must be readable like any other file."""
+    old = os.umask(0o022)
+    try:
+        atomic_write_text(tmp_path / "a.txt", "x")
+    finally:
+        os.umask(old)
+    mode = stat.S_IMODE((tmp_path / "a.txt").stat().st_mode)
+    assert mode & ~0o022 == mode  # nothing the umask forbids
+    # the value in io was read at import; with this process's umask the file is group/other readable
+    if not old & 0o044:
+        assert mode & 0o044 == 0o044, oct(mode)
+
+
+def test_run_json_records_version_command_and_commit(monkeypatch):
+    monkeypatch.setattr(sys, "argv", ["fastneus", "train", "my scene", "steps=3"])
+    p = provenance()
+    assert p["fastneus_version"] == __version__
+    assert p["command"] == "fastneus train 'my scene' steps=3"
+    if subprocess.run(["git", "--version"], capture_output=True).returncode == 0 and "git_commit" in p:
+        assert len(p["git_commit"].split("+")[0]) == 40
