@@ -41,3 +41,15 @@ def test_run_json_records_version_command_and_commit(monkeypatch):
     assert p["command"] == "fastneus train 'my scene' steps=3"
     if subprocess.run(["git", "--version"], capture_output=True).returncode == 0 and "git_commit" in p:
         assert len(p["git_commit"].split("+")[0]) == 40
+
+
+def test_mesh_verb_uses_the_runs_resolution(small_scene, tmp_path):
+    import trimesh
+
+    from conftest import SMALL_RUN
+
+    run = tmp_path / "run"
+    assert main(["train", str(small_scene), "--out", str(run), "--device", "cpu", *SMALL_RUN]) == 0
+    assert main(["mesh", str(run), "--device", "cpu", "--out", str(tmp_path / "again.ply")]) == 0
+    a, b = trimesh.load(run / "mesh.ply"), trimesh.load(tmp_path / "again.ply")
+    assert len(a.vertices) == len(b.vertices) > 0  # mesh_resolution=16 of the run, not a 512^3 grid

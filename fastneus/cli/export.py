@@ -87,7 +87,7 @@ def _eval(args) -> int:
 def register(sub) -> None:
     p = sub.add_parser("mesh", help="extract the mesh of a run (marching cubes, world units)")
     p.add_argument("run")
-    p.add_argument("--resolution", type=int, default=512)
+    p.add_argument("--resolution", type=int, default=None, help="marching-cubes grid (default: the run's export.mesh_resolution)")
     p.add_argument("--out", help="PLY or OBJ path (default RUN/mesh.ply)")
     p.add_argument("--scene", help="scene folder (default: the one the run was trained on)")
     add_device_arg(p)

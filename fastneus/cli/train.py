@@ -71,7 +71,7 @@ def _run(args, tag: str, default_preset: str, oneshot_frame: int | None = None) 
 
 
 def _common(p: argparse.ArgumentParser) -> None:
-    p.add_argument("scene", help="scene folder (fastneus scene.json, ActiveNeuS or NeuS cameras_sphere.npz)")
+    p.add_argument("scene", help="scene folder: fastneus (scene.json), ActiveNeuS or NeuS (cameras_sphere.npz), NeRF / instant-ngp / nerfstudio (transforms.json); the format is detected")
     p.add_argument("--config", help="preset name (fewview, oneshot, cpu-quick, passive, paper) or YAML file "
                                     "(default: fewview on cuda, cpu-quick on cpu)")
     p.add_argument("--out", help="run folder (default runs/<scene>-<verb>)")
