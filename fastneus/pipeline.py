@@ -55,7 +55,7 @@ def finish_run(trainer, console=None, eval_frames: list[int] | None = None, mesh
     trainer's checkpoint right after mesh.ply (also if meshing fails).
     """
     from fastneus import timing
-    from fastneus.export.mesh import extract_mesh_arrays, save_mesh
+    from fastneus.export.mesh import extract_mesh_arrays, save_mesh, shade_mesh
 
     clock = clock or getattr(trainer, "clock", None) or timing.take_clock()
     say = console.print if console is not None else (lambda *a, **k: None)
@@ -66,6 +66,7 @@ def finish_run(trainer, console=None, eval_frames: list[int] | None = None, mesh
             res = mesh_resolution or cfg.export.mesh_resolution
             mesh = extract_mesh_arrays(trainer.field, scene, res, trainer.device, bound=cfg.rays.bound,
                                        allowed=trainer.seen)
+            mesh = shade_mesh(trainer.field, scene, mesh, trainer.device)  # normals and learned colours
             save_mesh(mesh, run / "mesh.ply")
             at = clock.mark("mesh_ready")
             dt = time.perf_counter() - t
@@ -353,17 +354,19 @@ def reconstruct(scene, config=None, out: str | os.PathLike = "runs/fastneus", de
 
 
 def extract_mesh(trainer, resolution: int | None = None):
-    """The trained surface as a ``trimesh.Trimesh`` in world units (marching cubes).
+    """The trained surface as a ``trimesh.Trimesh`` in world units (marching cubes), with vertex
+    normals and the learned pattern-free vertex colours.
 
     Args:
         trainer: a trained :class:`fastneus.train.trainer.Trainer` (e.g. from :func:`reconstruct`).
         resolution: grid resolution (default: the run's ``export.mesh_resolution``).
     """
-    from fastneus.export.mesh import extract_mesh_arrays
+    from fastneus.export.mesh import extract_mesh_arrays, shade_mesh
 
     res = resolution or trainer.cfg.export.mesh_resolution
-    return extract_mesh_arrays(trainer.field, trainer.scene, res, trainer.device, bound=trainer.cfg.rays.bound,
-                               allowed=trainer.seen).to_trimesh()
+    mesh = extract_mesh_arrays(trainer.field, trainer.scene, res, trainer.device, bound=trainer.cfg.rays.bound,
+                               allowed=trainer.seen)
+    return shade_mesh(trainer.field, trainer.scene, mesh, trainer.device).to_trimesh()
 
 
 def evaluate(run: str | os.PathLike, device: str | None = None, scene: str | None = None,

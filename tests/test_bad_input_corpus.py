@@ -753,7 +753,7 @@ def _(c):
 
 @case("cli-mesh-out-suffix")
 def _(c):
-    return c.on_run("mesh", None, "--out", str(c.tmp / "m.stl")) + (["m.stl", "--out", ".ply or .obj"],)
+    return c.on_run("mesh", None, "--out", str(c.tmp / "m.stl")) + (["m.stl", "--out", ".ply, .obj or .glb"],)
 
 
 # --------------------------------------------------------------------------- run folders and checkpoints

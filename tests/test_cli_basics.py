@@ -6,6 +6,8 @@ import stat
 import subprocess
 import sys
 
+import numpy as np
+
 from fastneus import __version__
 from fastneus.cli import main
 from fastneus.io import atomic_write_text
@@ -53,3 +55,19 @@ def test_mesh_verb_uses_the_runs_resolution(small_scene, tmp_path):
     assert main(["mesh", str(run), "--device", "cpu", "--out", str(tmp_path / "again.ply")]) == 0
     a, b = trimesh.load(run / "mesh.ply"), trimesh.load(tmp_path / "again.ply")
     assert len(a.vertices) == len(b.vertices) > 0  # mesh_resolution=16 of the run, not a 512^3 grid
+    # the exports carry unit outward normals (a sphere here) and the learned colours
+    header = (run / "mesh.ply").read_bytes().split(b"end_header")[0].decode()
+    for prop in ("nx", "ny", "nz", "red", "green", "blue"):
+        assert f" {prop}\n" in header, prop
+    from fastneus.formats.detect import load_scene
+
+    c = load_scene(small_scene).bounds.center
+    radial = a.vertices - c
+    radial /= np.linalg.norm(radial, axis=1, keepdims=True)
+    n = a.vertex_normals
+    assert np.allclose(np.linalg.norm(n, axis=1), 1, atol=1e-3) and np.mean(np.sum(n * radial, 1) > 0.5) > 0.9
+    rgb = a.visual.vertex_colors[:, :3]
+    assert rgb.dtype == np.uint8 and rgb.std() >= 0 and rgb.max() > 0
+    assert main(["mesh", str(run), "--device", "cpu", "--out", str(tmp_path / "m.glb")]) == 0
+    g = trimesh.load(tmp_path / "m.glb", force="mesh")
+    assert len(g.vertices) > 0 and g.visual.kind == "vertex"

@@ -22,20 +22,21 @@ def _check_resolution(res: int | None) -> None:
 
 
 def _mesh(args) -> int:
-    from fastneus.export.mesh import extract_mesh_arrays, save_mesh
+    from fastneus.export.mesh import extract_mesh_arrays, save_mesh, shade_mesh
 
     _check_resolution(args.resolution)
     if args.out is not None:
         if Path(args.out).is_dir():
-            raise FastneusError("is a folder; give a mesh file path ending in .ply or .obj", file=args.out,
+            raise FastneusError("is a folder; give a mesh file path ending in .ply, .obj or .glb", file=args.out,
                                 field="--out")
-        if Path(args.out).suffix.lower() not in (".ply", ".obj"):
-            raise FastneusError("mesh output must end in .ply or .obj", file=args.out, field="--out")
+        if Path(args.out).suffix.lower() not in (".ply", ".obj", ".glb"):
+            raise FastneusError("mesh output must end in .ply, .obj or .glb", file=args.out, field="--out")
         check_out_dir(Path(args.out).parent)
     device = resolve_device(args.device)
     scene, tr = open_run(args.run, device, args.scene)
     mesh = extract_mesh_arrays(tr.field, scene, args.resolution or tr.cfg.export.mesh_resolution, tr.device,
                                bound=tr.cfg.rays.bound, allowed=tr.seen)
+    mesh = shade_mesh(tr.field, scene, mesh, tr.device)
     out = Path(args.out) if args.out else Path(args.run) / "mesh.ply"
     with confined(out.parent):  # mesh.ply as a link into another folder is refused, not followed
         save_mesh(mesh, out)
@@ -88,7 +89,7 @@ def register(sub) -> None:
     p = sub.add_parser("mesh", help="extract the mesh of a run (marching cubes, world units)")
     p.add_argument("run")
     p.add_argument("--resolution", type=int, default=None, help="marching-cubes grid (default: the run's export.mesh_resolution)")
-    p.add_argument("--out", help="PLY or OBJ path (default RUN/mesh.ply)")
+    p.add_argument("--out", help="PLY, OBJ or GLB path (default RUN/mesh.ply; vertex normals and colours included)")
     p.add_argument("--scene", help="scene folder (default: the one the run was trained on)")
     add_device_arg(p)
     p.set_defaults(func=_mesh)

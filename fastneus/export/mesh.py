@@ -21,6 +21,8 @@ at least one occupancy cell. Faces are wound counter-clockwise seen from outside
 """
 from __future__ import annotations
 
+import dataclasses
+
 import math
 import time
 from dataclasses import dataclass, field as dc_field
@@ -350,15 +352,20 @@ class MeshArrays:
         vertices: [V, 3] float64 world units.
         faces: [F, 3] int64, counter-clockwise seen from outside.
         stats: seconds per step and evaluation counts of the extraction.
+        normals: [V, 3] float32 unit outward normals (the SDF gradient), or None.
+        colors: [V, 3] uint8 pattern-free colour learned by the model, or None.
     """
     vertices: np.ndarray
     faces: np.ndarray
     stats: dict = dc_field(default_factory=dict)
+    normals: np.ndarray | None = None
+    colors: np.ndarray | None = None
 
     def to_trimesh(self):
         import trimesh
 
-        return trimesh.Trimesh(vertices=self.vertices, faces=self.faces, process=False)
+        return trimesh.Trimesh(vertices=self.vertices, faces=self.faces, vertex_normals=self.normals,
+                               vertex_colors=self.colors, process=False)
 
 
 def keep_large_components(vertices: np.ndarray, faces: np.ndarray, keep_fraction: float) -> tuple:
@@ -522,40 +529,85 @@ def extract_mesh(field, scene, resolution: int, device, bound: str = "sphere",
     return extract_mesh_arrays(field, scene, resolution, device, bound=bound, allowed=allowed, **kw).to_trimesh()
 
 
+def shade_mesh(field, scene, mesh: MeshArrays, device, chunk: int = 1 << 15) -> MeshArrays:
+    """Add vertex normals and colours: the SDF gradient and the learned pattern-free colour D.
+
+    D is evaluated looking at each vertex head-on (view direction = -normal), the same
+    colour as the pattern-free texture renders (i_r = i_b = 0), in the photos' encoding.
+
+    Args:
+        field: the trained :class:`fastneus.field.model.SDFField` (normalised units).
+        scene: supplies ``bounds`` (world -> normalised).
+        mesh: the extracted mesh (world units).
+        device: where the field is evaluated.
+        chunk: vertices per field evaluation (memory).
+    Returns:
+        ``mesh`` with ``normals`` [V, 3] float32 and ``colors`` [V, 3] uint8 set.
+    """
+    if len(mesh.vertices) == 0:
+        return dataclasses.replace(mesh, normals=np.zeros((0, 3), np.float32), colors=np.zeros((0, 3), np.uint8))
+    c, r = np.asarray(scene.bounds.center, dtype=np.float64), float(scene.bounds.radius)
+    xs = torch.as_tensor((mesh.vertices - c) / r, dtype=torch.float32, device=device)
+    normals, colors = [], []
+    for x in xs.split(chunk):
+        with torch.no_grad():  # sdf_and_grad computes the analytic gradient locally even so
+            _, geo, grad, _ = field.sdf_and_grad(x)
+            n = grad / grad.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+            colors.append((field.color(x, grad, -n, geo).clamp(0, 1) * 255 + 0.5).to(torch.uint8).cpu())
+            normals.append(n.cpu())
+    return dataclasses.replace(mesh, normals=torch.cat(normals).numpy().astype(np.float32),
+                               colors=torch.cat(colors).numpy())
+
+
 # ----------------------------------------------------------------------------- writing
-def write_ply(path: str | Path, vertices: np.ndarray, faces: np.ndarray) -> Path:
-    """Binary little-endian PLY (float32 x y z; uchar-count int32 faces), written atomically.
+def write_ply(path: str | Path, vertices: np.ndarray, faces: np.ndarray, normals: np.ndarray | None = None,
+              colors: np.ndarray | None = None) -> Path:
+    """Binary little-endian PLY (float32 x y z [nx ny nz] [uchar red green blue]; uchar-count
+    int32 faces), written atomically.
 
     Args:
         vertices: [V, 3]; faces: [F, 3] int, indices into vertices.
+        normals: optional [V, 3] unit normals; colors: optional [V, 3] uint8.
     """
     v = np.ascontiguousarray(vertices, dtype="<f4").reshape(-1, 3)
     f = np.asarray(faces).reshape(-1, 3)
     if len(f) and (f.min() < 0 or f.max() >= len(v)):
         raise FastneusError("face indices out of range of the vertices", field=str(path))
+    fields = [("p", "<f4", (3,))] + ([("n", "<f4", (3,))] if normals is not None else []) + \
+        ([("c", "u1", (3,))] if colors is not None else [])
+    vrec = np.empty(len(v), dtype=fields)
+    vrec["p"] = v
+    props = "property float x\nproperty float y\nproperty float z\n"
+    if normals is not None:
+        vrec["n"] = np.asarray(normals, dtype="<f4").reshape(-1, 3)
+        props += "property float nx\nproperty float ny\nproperty float nz\n"
+    if colors is not None:
+        vrec["c"] = np.asarray(colors, dtype=np.uint8).reshape(-1, 3)
+        props += "property uchar red\nproperty uchar green\nproperty uchar blue\n"
     rec = np.empty(len(f), dtype=[("n", "u1"), ("i", "<i4", (3,))])
     rec["n"], rec["i"] = 3, f
     header = ("ply\nformat binary_little_endian 1.0\ncomment fastneus\n"
-              f"element vertex {len(v)}\nproperty float x\nproperty float y\nproperty float z\n"
+              f"element vertex {len(v)}\n{props}"
               f"element face {len(f)}\nproperty list uchar int vertex_indices\nend_header\n").encode("ascii")
 
     def w(tmp: str) -> None:
         with open(tmp, "wb") as fh:
             fh.write(header)
-            fh.write(v.tobytes())
+            fh.write(vrec.tobytes())
             fh.write(rec.tobytes())
     atomic_write(path, w)
     return Path(path)
 
 
 def save_mesh(mesh, path: str | Path) -> Path:
-    """Write PLY (own writer) or OBJ (trimesh) by suffix, atomically. ``mesh``: MeshArrays or trimesh."""
+    """Write PLY (own writer), OBJ or GLB (trimesh) by suffix, atomically, with the vertex normals
+    and colours when the mesh has them. ``mesh``: MeshArrays or trimesh."""
     path = Path(path)
     suffix = path.suffix.lower()
-    if suffix not in (".ply", ".obj"):
-        raise FastneusError("mesh output must end in .ply or .obj", field=str(path))
-    if suffix == ".ply":
-        return write_ply(path, mesh.vertices, mesh.faces)
+    if suffix not in (".ply", ".obj", ".glb"):
+        raise FastneusError("mesh output must end in .ply, .obj or .glb", field=str(path))
+    if suffix == ".ply" and isinstance(mesh, MeshArrays):
+        return write_ply(path, mesh.vertices, mesh.faces, mesh.normals, mesh.colors)
     tm = mesh.to_trimesh() if isinstance(mesh, MeshArrays) else mesh
-    atomic_write(path, lambda tmp: tm.export(tmp, file_type="obj"))
+    atomic_write(path, lambda tmp: tm.export(tmp, file_type=suffix[1:]))
     return path
