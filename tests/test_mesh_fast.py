@@ -217,7 +217,7 @@ def test_ply_writer_round_trip_and_obj(tmp_path):
     assert (tmp_path / "m2.ply").read_bytes() == (tmp_path / "m.ply").read_bytes()
     save_mesh(m, tmp_path / "m.obj")
     assert len(trimesh.load(tmp_path / "m.obj", force="mesh").faces) == len(m.faces)
-    with pytest.raises(FastneusError, match=r"\.ply or \.obj"):
+    with pytest.raises(FastneusError, match=r"\.ply, \.obj or \.glb"):
         save_mesh(m, tmp_path / "m.stl")
     with pytest.raises(FastneusError, match="out of range"):
         write_ply(tmp_path / "bad.ply", m.vertices, m.faces + len(m.vertices))

@@ -606,8 +606,8 @@ def save_mesh(mesh, path: str | Path) -> Path:
     suffix = path.suffix.lower()
     if suffix not in (".ply", ".obj", ".glb"):
         raise FastneusError("mesh output must end in .ply, .obj or .glb", field=str(path))
-    if suffix == ".ply" and isinstance(mesh, MeshArrays):
-        return write_ply(path, mesh.vertices, mesh.faces, mesh.normals, mesh.colors)
+    if suffix == ".ply":  # a trimesh goes through the same writer (positions and faces)
+        return write_ply(path, mesh.vertices, mesh.faces, getattr(mesh, "normals", None), getattr(mesh, "colors", None))
     tm = mesh.to_trimesh() if isinstance(mesh, MeshArrays) else mesh
     atomic_write(path, lambda tmp: tm.export(tmp, file_type=suffix[1:]))
     return path
