@@ -20,7 +20,9 @@ def provenance() -> dict:
 
     from fastneus import __version__
 
-    out = {"fastneus_version": __version__, "command": shlex.join([Path(sys.argv[0]).name, *sys.argv[1:]])}
+    prog = Path(sys.argv[0]).name if sys.argv and sys.argv[0] else "python"
+    prog = "fastneus" if prog == "__main__.py" else prog  # python -m fastneus / fastneus.cli
+    out = {"fastneus_version": __version__, "command": shlex.join([prog, *sys.argv[1:]])}
     src = Path(__file__).resolve().parent.parent
     try:
         git = lambda *a: subprocess.run(["git", "-C", str(src), *a], capture_output=True, text=True,  # noqa: E731

@@ -41,6 +41,8 @@ def test_run_json_records_version_command_and_commit(monkeypatch):
     p = provenance()
     assert p["fastneus_version"] == __version__
     assert p["command"] == "fastneus train 'my scene' steps=3"
+    monkeypatch.setattr(sys, "argv", ["/x/fastneus/__main__.py", "eval", "run"])  # python -m fastneus
+    assert provenance()["command"] == "fastneus eval run"
     if subprocess.run(["git", "--version"], capture_output=True).returncode == 0 and "git_commit" in p:
         assert len(p["git_commit"].split("+")[0]) == 40
 
