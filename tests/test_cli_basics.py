@@ -73,3 +73,14 @@ def test_mesh_verb_uses_the_runs_resolution(small_scene, tmp_path):
     assert main(["mesh", str(run), "--device", "cpu", "--out", str(tmp_path / "m.glb")]) == 0
     g = trimesh.load(tmp_path / "m.glb", force="mesh")
     assert len(g.vertices) > 0 and g.visual.kind == "vertex"
+
+
+def test_piped_training_prints_plain_progress_lines(small_scene, tmp_path, capsys):
+    """A cluster job's log gets plain unwrapped lines, not a bar redrawn in place."""
+    from conftest import SMALL_RUN
+
+    assert main(["train", str(small_scene), "--out", str(tmp_path / "run"), "--device", "cpu", *SMALL_RUN]) == 0
+    out = capsys.readouterr().out
+    lines = [x for x in out.splitlines() if x.startswith("train step")]
+    assert lines and lines[-1].startswith("train step 4/4 (100%): step 4 loss"), out
+    assert "━" not in out and "\r" not in out

@@ -135,7 +135,8 @@ def render_frames(trainer, frames: list[int], chunk: int = 8192) -> dict[int, di
     e.g. the reference baseline) is used through it; otherwise the fastneus field and grid.
     """
     scene, cfg = trainer.scene, trainer.cfg
-    refr = getattr(trainer.cfg, "refraction", True)
+    # fastneus's sectioned config; the NeuS-MLP baseline's flat one has no ports
+    refr = trainer.cfg.rig.refraction if hasattr(trainer.cfg, "rig") else True
     rig = getattr(trainer, "rig", None)
     posed = rig.eval_scene() if rig is not None else scene  # learned pose corrections, if any
     bank = RayBank(posed, frames, trainer.device, refraction=refr)

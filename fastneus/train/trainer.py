@@ -29,6 +29,16 @@ from fastneus.train.rig import state_of as rig_state
 from fastneus.train.rays import build_projection
 
 
+PLAIN_EVERY_S = 5.0  # seconds between progress lines when stdout is not a terminal
+
+
+def _plain_line(rec: dict, done: int, total: int, timed: bool) -> str:
+    """One progress line for logs: where the run is and its latest record (no wrapping, no colour)."""
+    where = f"{done / 10:.1f}/{total / 10:.0f} s" if timed else f"step {done}/{total}"
+    return (f"train {where} ({100 * done / max(1, total):.0f}%): step {rec['step']} loss {rec['loss']:.4f} "
+            f"psnr {rec['psnr']:.2f} i_r {rec['i_r']:.4f} i_b {rec['i_b']:.4f} {rec['it_s']:.1f} it/s")
+
+
 def resolve_masks(scene, frames: list[int], cfg: Config) -> tuple[bool, str]:
     """Decide whether the mask loss is used: ``masks=auto`` -> on when every training frame has a mask.
 
@@ -317,7 +327,10 @@ class Trainer:
         unit = "{task.completed}/{task.total} ds" if timed else "{task.completed}/{task.total}"
         columns = [TextColumn("[bold]train"), BarColumn(), TextColumn(unit),
                    TextColumn("{task.fields[info]}"), TimeElapsedColumn(), TextColumn("ETA"), TimeRemainingColumn()]
-        progress = Progress(*columns, console=self.console, disable=self.console is None, transient=False)
+        # piped output (a cluster job's log): no bar, a plain unwrapped line every few seconds instead
+        plain = self.console is not None and not self.console.is_terminal
+        progress = Progress(*columns, console=self.console, disable=self.console is None or plain, transient=False)
+        next_line = time.perf_counter() + PLAIN_EVERY_S
         with progress:
             task = progress.add_task("train", total=total, completed=done(), info="")
             while not self.finished():
@@ -351,6 +364,10 @@ class Trainer:
                                                     f"i_r {i_r:.3f} i_b {i_b:.3f} spr {last['samples_per_ray']:.0f} "
                                                     f"{last['it_s']:.1f} it/s"))
                 progress.update(task, completed=done())
+                if plain and last and (end or time.perf_counter() >= next_line):
+                    next_line = time.perf_counter() + PLAIN_EVERY_S
+                    self.console.print(_plain_line(last, done(), total, timed), soft_wrap=True, highlight=False,
+                                       markup=False)
                 if self.step % c.run.save_every == 0:
                     t_save -= time.perf_counter()
                     self.save()
