@@ -84,3 +84,31 @@ def test_cli(tmp_path, capsys):
     assert im.shape == (32, 64, 3)
     assert "wrote 22 graycode patterns" in capsys.readouterr().out
     assert main(["patterns", "--kind", "grid", "--size", "64by32", "--out", str(tmp_path)]) == 2
+
+
+def test_a_pattern_kind_registered_from_outside_reaches_every_verb(tmp_path):
+    """One register_pattern_kind call: make_pattern, `fastneus patterns` and `fastneus synth` take it."""
+    import numpy as np
+
+    from fastneus.cli import main
+    from fastneus.light.patterns import PatternKind, register_pattern_kind, unregister_pattern_kind
+    from fastneus.synth.render import synthesize
+
+    def checker(width, height, seed=0, **opts):
+        y, x = np.mgrid[:height, :width]
+        on = ((x // 8 + y // 8) % 2).astype(np.uint8) * 255
+        return [np.stack([on, on, on], -1)]
+
+    register_pattern_kind(PatternKind("checker", checker, help="a toy checkerboard"))
+    try:
+        assert make_pattern("checker", 32, 16)[0].shape == (16, 32, 3)
+        assert main(["patterns", "--kind", "checker", "--size", "32x16", "--out", str(tmp_path / "p")]) == 0
+        assert (tmp_path / "p" / "checker_00.png").is_file()
+        scene = synthesize(tmp_path / "s", shape="sphere", views=2, size=(24, 24), pattern="checker",
+                           proj_size=(64, 48), contact_sheet=False, progress=False)
+        assert len(scene.frames) == 2 and len(scene.patterns) >= 1
+    finally:
+        unregister_pattern_kind("checker")
+    assert "checker" not in KINDS
+    with pytest.raises(Exception, match="unknown pattern kind"):
+        make_pattern("checker", 8, 8)

@@ -2,13 +2,13 @@
 from __future__ import annotations
 
 from fastneus.io import make_out_dir
-from fastneus.light.patterns import KINDS, make_pattern, parse_size, write_png
+from fastneus.light.patterns import make_pattern, parse_size, pattern_kinds, write_png
 
 
 def register(subparsers) -> None:
     p = subparsers.add_parser("patterns", help="write projector pattern PNGs",
-                              description="Generate projector patterns (" + ", ".join(KINDS) + ") as PNG files.")
-    p.add_argument("--kind", required=True, choices=KINDS)
+                              description="Generate projector patterns (" + ", ".join(pattern_kinds()) + ") as PNG files.")
+    p.add_argument("--kind", required=True, choices=pattern_kinds())
     p.add_argument("--size", default="1024x768", help="projector resolution WxH (default 1024x768)")
     p.add_argument("--out", required=True, help="output folder")
     p.add_argument("--seed", type=int, default=0)

@@ -6,8 +6,7 @@ from pathlib import Path
 
 from fastneus.cli import add_device_arg, resolve_device
 from fastneus.errors import FastneusError
-from fastneus.light.patterns import KINDS as PATTERN_KINDS
-from fastneus.light.patterns import parse_size
+from fastneus.light.patterns import parse_size, pattern_kinds
 from fastneus.synth.render import ALBEDOS, ILLUMS, synthesize
 from fastneus.synth.shapes import SHAPES
 
@@ -21,7 +20,7 @@ def register(subparsers) -> None:
     src.add_argument("--shape", choices=SHAPES, help="built-in shape")
     p.add_argument("--views", type=int, default=20, help="viewpoints (default 20; 1 = one-shot)")
     p.add_argument("--size", default="800x800", help="image size WxH (default 800x800)")
-    p.add_argument("--pattern", default="crosslaser", choices=PATTERN_KINDS, help="pattern kind (default crosslaser)")
+    p.add_argument("--pattern", default="crosslaser", choices=pattern_kinds(), help="pattern kind (default crosslaser)")
     p.add_argument("--illum", default="normal", choices=list(ILLUMS), help="normal (ambient 1) or dark (0.1)")
     p.add_argument("--ambient", type=float, default=None, help="override the ambient level")
     p.add_argument("--albedo", default="procedural", choices=ALBEDOS)

@@ -13,6 +13,9 @@ Kinds:
 """
 from __future__ import annotations
 
+from collections.abc import Callable
+from dataclasses import dataclass
+
 import math
 import os
 import tempfile
@@ -22,6 +25,7 @@ import numpy as np
 
 from fastneus.errors import FastneusError
 
+# the built-in kinds (every registered kind: :func:`pattern_kinds`; see PATTERNS at the end)
 KINDS = ("crosslaser", "graycode", "grid", "colorline", "dots", "phaseshift")
 
 # the 8 binary RGB colours (black included, as in the ActiveNeuS sample)
@@ -223,15 +227,64 @@ def decode_phaseshift(images) -> np.ndarray:
     return np.mod(np.arctan2(s, c), 2 * np.pi).astype(np.float32)
 
 
-_GENERATORS = {"crosslaser": crosslaser, "graycode": graycode, "grid": grid, "colorline": colorline,
-               "dots": dots, "phaseshift": phaseshift}
+@dataclass(frozen=True)
+class PatternKind:
+    """One pattern family: how to draw it and whether a viewpoint shows it as a sequence.
+
+    Attributes:
+        name: the id (``fastneus patterns --kind``, ``fastneus synth --pattern``).
+        generate: ``(width, height, seed=, **opts) -> list of uint8 [height, width, 3]``.
+        sequence: shown as several shots per viewpoint (Gray code, phase shift), one frame per
+            image, by one projector; else one image per projector (a one-shot pattern).
+        help: one line for users.
+    """
+
+    name: str
+    generate: Callable[..., list[np.ndarray]]
+    sequence: bool = False
+    help: str = ""
+
+
+# name -> kind, in the order shown to users; register_pattern_kind adds one
+PATTERNS: dict[str, PatternKind] = {}
+
+
+def register_pattern_kind(kind: PatternKind) -> None:
+    """Make a pattern kind available to ``make_pattern``, the ``patterns`` verb and ``synth``."""
+    if not kind.name or not kind.name.replace("_", "").isalnum():
+        raise ValueError(f"pattern kind names are words, got {kind.name!r}")
+    PATTERNS[kind.name] = kind
+
+
+def unregister_pattern_kind(name: str) -> None:
+    """Remove a registered kind (tests register toy kinds and remove them after)."""
+    PATTERNS.pop(name, None)
+
+
+def pattern_kinds() -> tuple[str, ...]:
+    """Every registered kind's name, built-ins first."""
+    return tuple(PATTERNS)
+
+
+def sequence_kinds() -> tuple[str, ...]:
+    """The kinds shown as a sequence of shots per viewpoint."""
+    return tuple(k for k, v in PATTERNS.items() if v.sequence)
+
+
+for _k in (PatternKind("crosslaser", crosslaser, help="static red/green cross-laser lines (the paper's rig)"),
+           PatternKind("graycode", graycode, sequence=True, help="Gray-code stripes, one image per bit"),
+           PatternKind("grid", grid, help="a one-shot grid"),
+           PatternKind("colorline", colorline, help="colourful lines (one-shot, the official sample's pattern)"),
+           PatternKind("dots", dots, help="random dots (active stereo)"),
+           PatternKind("phaseshift", phaseshift, sequence=True, help="sinusoidal phase shifts")):
+    register_pattern_kind(_k)
 
 
 def make_pattern(kind: str, width: int, height: int, seed: int = 0, **opts) -> list[np.ndarray]:
     """Generate pattern ``kind`` at ``width`` x ``height``.
 
     Args:
-        kind: one of :data:`KINDS`.
+        kind: a registered kind (:func:`pattern_kinds`).
         width, height: projector resolution in pixels.
         seed: random seed (same seed, same images).
         **opts: generator options; None values are dropped so CLI defaults apply
@@ -240,15 +293,15 @@ def make_pattern(kind: str, width: int, height: int, seed: int = 0, **opts) -> l
     Returns:
         list of uint8 [height, width, 3] RGB images.
     """
-    if kind not in _GENERATORS:
-        raise FastneusError(f"unknown pattern kind {kind!r}; use one of {', '.join(KINDS)}", field="--kind")
+    if kind not in PATTERNS:
+        raise FastneusError(f"unknown pattern kind {kind!r}; use one of {', '.join(PATTERNS)}", field="--kind")
     if width < 1 or height < 1:
         raise FastneusError(f"bad pattern size {width}x{height}", field="--size")
     opts = {k: v for k, v in opts.items() if v is not None}
     for k in ("count", "line_width"):
         if k in opts and int(opts[k]) < 1:
             raise FastneusError(f"{k} must be >= 1", field=f"--{k.replace('_', '-')}")
-    return _GENERATORS[kind](int(width), int(height), seed=int(seed), **opts)
+    return PATTERNS[kind].generate(int(width), int(height), seed=int(seed), **opts)
 
 
 # --------------------------------------------------------------------------- IO + CLI

@@ -26,14 +26,13 @@ from fastneus.data.model import Bounds, Camera, FlatPort, Frame, FrameProjector,
 from fastneus.data.scene import Scene
 from fastneus.errors import FastneusError
 from fastneus.geometry.cameras import camera_intrinsics, look_at, projector_intrinsics, rig_proj_to_cam
-from fastneus.light.patterns import KINDS as PATTERN_KINDS
+from fastneus.light.patterns import pattern_kinds, sequence_kinds
 from fastneus.light.patterns import make_pattern, write_png
 from fastneus.geometry.projection import Z_MIN, pixel_rays, project_points, refract_rays, sample_pattern
 from fastneus.synth.shapes import load_mesh, make_shape, normalise_mesh
 
 ALBEDOS = ("uniform", "procedural", "checker", "vertex")
 ILLUMS = {"normal": 1.0, "dark": 0.1}
-SEQUENCE_KINDS = ("graycode", "phaseshift")  # one frame per pattern per viewpoint
 RIG_BASELINES = (-0.6, -0.2, 0.2, 0.6)  # metres, horizontal, in camera coordinates
 SEQUENCE_BASELINES = (0.6,)  # a sequence is shown by one projector
 GENERATOR = "fastneus synth"
@@ -227,7 +226,7 @@ def synthesize(out, shape: str | None = None, mesh=None, views: int = 20, size=(
         mesh: a mesh file path or a ``trimesh.Trimesh`` (exactly one of shape / mesh).
         views: number of viewpoints on the orbit (ignored when ``poses`` is given).
         size: camera image (width, height).
-        pattern: a pattern kind (``fastneus.light.patterns.KINDS``) or a uint8 [h, w, 3] RGB
+        pattern: a pattern kind (``fastneus.light.patterns.pattern_kinds()``) or a uint8 [h, w, 3] RGB
             array shown by every projector. Sequence kinds (graycode, phaseshift) make one
             frame per pattern per viewpoint, sharing the view id.
         illum: ``normal`` (ambient 1.0) or ``dark`` (ambient 0.1); ``ambient`` overrides.
@@ -357,7 +356,7 @@ def _synthesize(out, shape, mesh, views, size, pattern, illum, albedo, noise, se
     alb = Albedo(albedo, m, obj_radius, seed, dev)
 
     # ---- rig and patterns
-    seq = isinstance(pattern, str) and pattern in SEQUENCE_KINDS
+    seq = isinstance(pattern, str) and pattern in sequence_kinds()  # one frame per pattern per viewpoint
     if baselines is None:
         baselines = SEQUENCE_BASELINES if seq else RIG_BASELINES
     Kp = projector_intrinsics(PW, PH, proj_fov_deg)
@@ -392,8 +391,8 @@ def _synthesize(out, shape, mesh, views, size, pattern, illum, albedo, noise, se
         kind = "custom"
     else:
         kind = pattern
-        if kind not in PATTERN_KINDS:
-            raise FastneusError(f"unknown pattern {kind!r}; use one of {', '.join(PATTERN_KINDS)}",
+        if kind not in pattern_kinds():
+            raise FastneusError(f"unknown pattern {kind!r}; use one of {', '.join(pattern_kinds())}",
                                 field="--pattern")
         if seq:
             for j, im in enumerate(make_pattern(kind, PW, PH, seed=seed, **opts)):
