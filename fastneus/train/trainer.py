@@ -21,6 +21,7 @@ from fastneus.io import open_append
 from fastneus.kernels.occupancy import OccupancyGrid
 from fastneus.train.checkpoint import CKPT_NAME, load_checkpoint, restore, save_checkpoint  # noqa: F401 (re-export)
 from fastneus.train.adam import Adam
+from fastneus.train import losses
 from fastneus.train.guard import finite_step
 from fastneus.train.multishot import make_bank
 from fastneus.train.rig import Rig
@@ -256,29 +257,23 @@ class Trainer:
         # (unclipped, bright pattern pixels would pull i_r down on Normal-light scenes)
         # [B, 3], or [B, K, 3] with K shots per ray (multi-shot); + water (fastneus.train.rig)
         pred = self.rig.composite(out["color"], out, c.rays.background).clamp(max=1.0)
-        err = (pred - batch["rgb"]).abs()
-        loss_rgb = err.mean()
-        grad = out["grad"]
+        terms = losses.photometric(pred, batch["rgb"])
         # eikonal on the samples plus a few uniform points so the far field stays an SDF
         n_rand = max(256, self.n_rays // 4)
         xr = torch.rand(n_rand, 3, device=self.device, generator=self.gen) * 2 - 1
         _, _, grad_r, _ = self.field.sdf_and_grad(xr)
-        g_all = torch.cat([grad, grad_r])
-        loss_eik = ((g_all.norm(dim=-1) - 1.0) ** 2).mean()
-        loss = loss_rgb + c.loss.eikonal_weight * loss_eik
+        terms |= losses.eikonal(torch.cat([out["grad"], grad_r]), c.loss.eikonal_weight)
         if self.masks_used and "mask" in batch:
-            op = out["opacity"].clamp(1e-3, 1 - 1e-3)
-            loss = loss + c.loss.mask_weight * torch.nn.functional.binary_cross_entropy(op, batch["mask"])
+            terms |= losses.mask_bce(out["opacity"], batch["mask"], c.loss.mask_weight)
         elif self.bg_used and "bg" in batch and p >= c.loss.bg_start_frac:
-            # one-sided: background-coloured pixels are pushed to zero opacity, others are free
             ramp = min(1.0, (p - c.loss.bg_start_frac) / c.loss.bg_start_frac) if c.loss.bg_start_frac > 0 else 1.0
-            op = out["opacity"].clamp(max=1 - 1e-3)
-            loss = loss - ramp * c.loss.bg_weight * (batch["bg"] * torch.log1p(-op)).mean()
+            terms |= losses.background_free_space(out["opacity"], batch["bg"], ramp * c.loss.bg_weight)
         if self.prior is not None and p < c.init.prior_frac:
             w = c.init.prior_weight * (1.0 - p / c.init.prior_frac)
-            loss = loss + w * self.prior.loss(self.field, fit_batch(c) // 2, self.gen, eikonal=False)
+            terms |= losses.surface_prior(self.prior.loss(self.field, fit_batch(c) // 2, self.gen, eikonal=False), w)
         if c.loss.curvature_weight > 0 and out["curv"] is not None:
-            loss = loss + c.loss.curvature_weight * out["curv"].abs().mean()
+            terms |= losses.curvature(out["curv"], c.loss.curvature_weight)
+        loss = losses.total(terms)
         self.opt.zero_grad(set_to_none=True)
         loss.backward()
         stepped = finite_step(self.opt, loss)  # NaN/Inf guard
@@ -287,8 +282,10 @@ class Trainer:
         if not stepped:
             self.skipped += 1
             return None
-        return {"loss": loss.detach(), "l1": loss_rgb.detach(), "mse": (err ** 2).mean().detach(),
-                "eik": loss_eik.detach(), "spr": s / batch["origins"].shape[0], "samples": s}
+        with torch.no_grad():
+            mse = ((pred - batch["rgb"]) ** 2).mean()
+        return {"loss": loss.detach(), "l1": terms["rgb"].detach(), "mse": mse, "eik": terms["eik"],
+                "spr": s / batch["origins"].shape[0], "samples": s}
 
     # ------------------------------------------------------------------ loop
     def fit(self, final_save: bool = True) -> dict:

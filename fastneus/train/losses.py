@@ -1,0 +1,83 @@
+"""The training loss, one function per term (DESIGN: L1 colour + lambda eikonal + beta mask BCE,
+plus fastneus's priors). Each returns ``{name: weighted scalar}``; :func:`total` sums them in a
+fixed order. Adding a term: a function here, its weight as a knob in the config's ``loss``
+section, one line in ``Trainer.train_step``.
+"""
+from __future__ import annotations
+
+import torch
+
+# the order terms are summed in (fixed, so a run is reproducible bit for bit)
+TERMS = ("rgb", "eikonal", "mask", "background", "prior", "curvature")
+
+
+def photometric(pred: torch.Tensor, target: torch.Tensor) -> dict[str, torch.Tensor]:
+    """L1 between rendered and photographed colour.
+
+    Args:
+        pred: [B, 3] or [B, K, 3] rendered colour (with the pattern), clipped at 1 like the camera.
+        target: same shape, the photo.
+    Returns:
+        {"rgb": mean |pred - target|} (weight 1: the loss's unit).
+    """
+    return {"rgb": (pred - target).abs().mean()}
+
+
+def eikonal(grads: torch.Tensor, weight: float) -> dict[str, torch.Tensor]:
+    """Eikonal term: the SDF gradient has unit length.
+
+    Args:
+        grads: [N, 3] SDF gradients (at the samples and at uniform points).
+        weight: ``loss.eikonal_weight``.
+    Returns:
+        {"eikonal": weight * mean (|g| - 1)^2, "eik": the unweighted mean (for the log, not summed)}.
+    """
+    r = ((grads.norm(dim=-1) - 1.0) ** 2).mean()
+    return {"eikonal": weight * r, "eik": r.detach()}
+
+
+def mask_bce(opacity: torch.Tensor, mask: torch.Tensor, weight: float) -> dict[str, torch.Tensor]:
+    """Binary cross-entropy of the rendered opacity against the object mask.
+
+    Args:
+        opacity: [B] accumulated opacity; mask: [B] in {0, 1}; weight: ``loss.mask_weight``.
+    """
+    op = opacity.clamp(1e-3, 1 - 1e-3)
+    return {"mask": weight * torch.nn.functional.binary_cross_entropy(op, mask)}
+
+
+def background_free_space(opacity: torch.Tensor, is_bg: torch.Tensor, weight: float) -> dict[str, torch.Tensor]:
+    """One-sided prior without masks: background-coloured pixels are pushed to zero opacity,
+    the others are free.
+
+    Args:
+        opacity: [B]; is_bg: [B] 1 where the photo equals the background colour;
+        weight: ``loss.bg_weight`` times the ramp-in factor.
+    """
+    op = opacity.clamp(max=1 - 1e-3)
+    return {"background": -(weight * (is_bg * torch.log1p(-op)).mean())}
+
+
+def surface_prior(value: torch.Tensor, weight: float) -> dict[str, torch.Tensor]:
+    """The decoded / swept surface kept as a fading prior (``SurfacePrior.loss``'s value)."""
+    return {"prior": weight * value}
+
+
+def curvature(curv: torch.Tensor, weight: float) -> dict[str, torch.Tensor]:
+    """Smoothness prior |f(x+e) + f(x-e) - 2 f(x)| (one-shot).
+
+    Args:
+        curv: [N] Laplacian-like residuals of the SDF at the samples; weight: ``loss.curvature_weight``.
+    """
+    return {"curvature": weight * curv.abs().mean()}
+
+
+def total(terms: dict[str, torch.Tensor]) -> torch.Tensor:
+    """Sum of the loss terms present in ``terms``, in :data:`TERMS` order (log-only entries skipped)."""
+    out = None
+    for name in TERMS:
+        if name in terms:
+            out = terms[name] if out is None else out + terms[name]
+    if out is None:
+        raise ValueError("no loss term")
+    return out

@@ -1,0 +1,58 @@
+"""Each loss term on hand-made tensors: known values, zero weight, gradients flow, fixed sum order."""
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from fastneus.train import losses
+
+
+def test_photometric_is_mean_l1():
+    pred = torch.tensor([[0.5, 0.5, 0.5], [1.0, 0.0, 0.2]], requires_grad=True)
+    t = losses.photometric(pred, torch.tensor([[0.25, 0.5, 1.0], [1.0, 0.5, 0.2]]))
+    assert t["rgb"].item() == pytest.approx((0.25 + 0 + 0.5 + 0 + 0.5 + 0) / 6)
+    t["rgb"].backward()
+    assert pred.grad.abs().sum() > 0
+
+
+def test_eikonal_zero_on_unit_gradients_and_weighted():
+    g = torch.tensor([[1.0, 0.0, 0.0], [0.0, 0.6, 0.8]])
+    assert losses.eikonal(g, 0.1)["eikonal"].item() == pytest.approx(0.0, abs=1e-12)
+    g2 = torch.tensor([[2.0, 0.0, 0.0]], requires_grad=True)
+    t = losses.eikonal(g2, 0.1)
+    assert t["eik"].item() == pytest.approx(1.0) and t["eikonal"].item() == pytest.approx(0.1)
+    assert not t["eik"].requires_grad  # the log value is not a second path into the graph
+    t["eikonal"].backward()
+    assert g2.grad[0, 0].item() == pytest.approx(0.1 * 2 * (2 - 1))
+
+
+def test_mask_bce_matches_the_formula_and_clamps():
+    op = torch.tensor([0.9, 0.0])
+    m = torch.tensor([1.0, 0.0])
+    expect = -(math.log(0.9) + math.log(1 - 1e-3)) / 2
+    assert losses.mask_bce(op, m, 2.0)["mask"].item() == pytest.approx(2.0 * expect, rel=1e-5)
+
+
+def test_background_only_pushes_background_pixels():
+    op = torch.tensor([0.5, 0.5], requires_grad=True)
+    t = losses.background_free_space(op, torch.tensor([1.0, 0.0]), 0.1)
+    assert t["background"].item() == pytest.approx(-0.1 * math.log(0.5) / 2, rel=1e-6)
+    t["background"].backward()
+    assert op.grad[0] > 0 and op.grad[1] == 0  # lower opacity on background pixels only
+
+
+def test_curvature_and_prior_are_weighted():
+    assert losses.curvature(torch.tensor([1.0, -3.0]), 0.5)["curvature"].item() == pytest.approx(1.0)
+    assert losses.surface_prior(torch.tensor(2.0), 3.0)["prior"].item() == pytest.approx(6.0)
+
+
+def test_total_sums_terms_in_a_fixed_order_and_skips_log_values():
+    terms = {"curvature": torch.tensor(1e-8), "rgb": torch.tensor(1.0), "eik": torch.tensor(100.0),
+             "eikonal": torch.tensor(0.5)}
+    assert losses.total(terms).item() == pytest.approx(1.5 + 1e-8)
+    reordered = dict(reversed(list(terms.items())))
+    assert torch.equal(losses.total(terms), losses.total(reordered))
+    with pytest.raises(ValueError):
+        losses.total({"eik": torch.tensor(1.0)})
