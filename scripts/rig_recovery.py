@@ -88,7 +88,8 @@ def synth(out: Path, args, **kw):
 
 # --------------------------------------------------------------------------- parts
 def part_pose(args, out: Path) -> list[dict]:
-    from fastneus.train.rig import perturb_scene, pose_errors
+    from fastneus.eval.poses import pose_errors
+    from fastneus.synth.perturb import perturb_scene
 
     truth = synth(out / "scenes" / "pose", args)
     frames = list(range(len(truth.frames)))

@@ -11,7 +11,10 @@ import pytest
 import torch
 
 from fastneus.config import load_config
-from fastneus.train.rig import Rig, perturb_scene, pose_errors, rigid_inv, se3_matrix, so3_exp
+from fastneus.eval.poses import pose_errors
+from fastneus.geometry.se3 import rigid_inv, se3_matrix, so3_exp
+from fastneus.synth.perturb import perturb_scene
+from fastneus.train.rig import Rig
 from fastneus.train.rays import RayBank, build_projection
 from test_formats import make_scene
 

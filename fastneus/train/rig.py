@@ -32,54 +32,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from fastneus.geometry.se3 import rigid_inv, se3_matrix
 from fastneus.io import atomic_write_json
-
-
-# --------------------------------------------------------------------------- SE(3) helpers
-def so3_exp(omega: torch.Tensor) -> torch.Tensor:
-    """Rotation matrices of rotation vectors (Rodrigues), smooth through 0.
-
-    Args:
-        omega: [N, 3] rotation vectors (radians), any float dtype.
-    Returns:
-        [N, 3, 3] rotation matrices.
-    """
-    th2 = (omega * omega).sum(-1, keepdim=True)[..., None]  # [N, 1, 1]
-    small = th2 < 1e-8
-    th2s = torch.where(small, torch.ones_like(th2), th2)
-    th = th2s.sqrt()
-    a = torch.where(small, 1 - th2 / 6, torch.sin(th) / th)
-    b = torch.where(small, 0.5 - th2 / 24, (1 - torch.cos(th)) / th2s)
-    x, y, z = omega.unbind(-1)
-    o = torch.zeros_like(x)
-    Kx = torch.stack([o, -z, y, z, o, -x, -y, x, o], -1).reshape(-1, 3, 3)
-    eye = torch.eye(3, dtype=omega.dtype, device=omega.device).expand_as(Kx)
-    return eye + a * Kx + b * (Kx @ Kx)
-
-
-def se3_matrix(xi: torch.Tensor, scale: float = 1.0) -> torch.Tensor:
-    """[N, 6] (omega, v) -> [N, 4, 4] rigid transforms [[exp(omega), scale * v], [0, 1]]."""
-    R = so3_exp(xi[:, :3])
-    top = torch.cat([R, scale * xi[:, 3:, None]], -1)
-    bottom = torch.zeros_like(top[:, :1, :])
-    bottom[..., 3] = 1.0
-    return torch.cat([top, bottom], 1)
-
-
-def rigid_inv(T: torch.Tensor) -> torch.Tensor:
-    """Inverse of [..., 4, 4] rigid transforms."""
-    R, t = T[..., :3, :3], T[..., :3, 3:]
-    Rt = R.transpose(-1, -2)
-    top = torch.cat([Rt, -Rt @ t], -1)
-    return torch.cat([top, T[..., 3:, :]], -2)
-
-
-def pose_error(T_est: np.ndarray, T_true: np.ndarray) -> tuple[float, float]:
-    """(rotation error in degrees, translation error in the poses' units) of two 4x4 poses."""
-    R = T_est[:3, :3].T @ T_true[:3, :3]
-    s = 0.5 * np.linalg.norm([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
-    ang = math.degrees(math.atan2(s, (np.trace(R) - 1) / 2))  # accurate at small angles too
-    return ang, float(np.linalg.norm(T_est[:3, 3] - T_true[:3, 3]))
 
 
 # --------------------------------------------------------------------------- the rig
@@ -146,7 +100,7 @@ class Rig(torch.nn.Module):
         for k, pid in enumerate(self.proj_ids):
             p2c = scene.projectors[pid].proj_to_cam
             if p2c is not None:
-                from fastneus.geometry.cameras import rigid_inverse
+                from fastneus.geometry.cameras import rigid_inverse  # numpy twin of rigid_inv
 
                 A[:, k] = torch.as_tensor(rigid_inverse(p2c))
                 rigged[:, k] = True
@@ -433,96 +387,6 @@ class Rig(torch.nn.Module):
                          "kernels": {p: k[i].reshape(self.blur_n, self.blur_n).tolist()
                                      for i, p in enumerate(self.proj_ids)}}
         atomic_write_json(Path(out) / "rig.json", d)
-
-
-def perturb_scene(scene, deg: float, metres: float, seed: int = 0, anchor: bool = True,
-                  projectors: bool = True):
-    """A copy of ``scene`` with every viewpoint's camera (except the first when ``anchor``) and
-    every projector's pose moved by a random rotation of ``deg`` degrees about a random axis
-    and a random translation of ``metres`` (seeded): a calibration that is slightly off.
-
-    Frames sharing a viewpoint move together; a rigged projector's ``proj_to_cam`` moves once.
-    """
-    import copy
-
-    rng = np.random.default_rng(seed)
-
-    def E() -> np.ndarray:
-        ax = rng.normal(size=3)
-        tr = rng.normal(size=3)
-        T = se3_matrix(torch.tensor(np.r_[ax / np.linalg.norm(ax) * math.radians(deg),
-                                           tr / np.linalg.norm(tr) * metres][None]), 1.0)[0].numpy()
-        return T
-
-    s = copy.deepcopy(scene)
-    views = list(dict.fromkeys(f.view for f in s.frames))
-    moves = {v: (np.eye(4) if anchor and j == 0 else E()) for j, v in enumerate(views)}
-    for f in s.frames:
-        f.cam_to_world = f.cam_to_world @ moves[f.view]
-    if projectors:
-        for pid, pj in s.projectors.items():
-            Ep = E()
-            if pj.proj_to_cam is not None:
-                pj.proj_to_cam = pj.proj_to_cam @ Ep
-            else:
-                for f in s.frames:
-                    fp = f.projectors.get(pid)
-                    if fp is not None and fp.proj_to_world is not None:
-                        fp.proj_to_world = fp.proj_to_world @ Ep
-    return s
-
-
-def pose_errors(refined, truth, frames: list[int], anchor: bool = True) -> dict:
-    """Mean / max rotation (deg) and translation (mm) errors of refined vs true poses.
-
-    Args:
-        refined: scene with the poses to judge (frames in ``frames`` order, as
-            :meth:`Rig.refined_scene` returns, or a full scene indexed like ``truth``).
-        truth: the scene with the exact poses.
-        frames: training frame indices into ``truth``.
-    """
-    full = len(refined.frames) == len(truth.frames)
-    cr, ct = [], []
-    first_view = truth.frames[frames[0]].view
-    for a, i in enumerate(frames):
-        if anchor and truth.frames[i].view == first_view:
-            continue
-        r, t = pose_error(refined.cam_to_world(i if full else a), truth.cam_to_world(i))
-        cr.append(r)
-        ct.append(t * 1000)
-    pr, pt = [], []
-    for pid, pj in truth.projectors.items():
-        if pj.proj_to_cam is not None:
-            r, t = pose_error(refined.projectors[pid].proj_to_cam, pj.proj_to_cam)
-        else:
-            i = frames[0]
-            r, t = pose_error(refined.proj_to_world(i if full else 0, pid), truth.proj_to_world(i, pid))
-        pr.append(r)
-        pt.append(t * 1000)
-    f = lambda xs, g: float(g(xs)) if xs else 0.0  # noqa: E731
-    # what the images feel: pixel shift of points spread over the object (a ball of 0.8x the
-    # bounds radius) between the refined and the true camera. A camera turned about the scene
-    # centre and moved sideways by distance x angle shifts them far less than either move alone.
-    rng = np.random.default_rng(0)
-    d = rng.normal(size=(2000, 3))
-    pts = truth.bounds.center + 0.8 * truth.bounds.radius * d / np.linalg.norm(d, axis=1, keepdims=True) \
-        * rng.uniform(0, 1, (2000, 1)) ** (1 / 3)
-    ph = np.c_[pts, np.ones(len(pts))]
-    px = []
-    for a, i in enumerate(frames):
-        if anchor and truth.frames[i].view == first_view:
-            continue
-        K = truth.frame_camera(i).K
-        uv = []
-        for T in (refined.cam_to_world(i if full else a), truth.cam_to_world(i)):
-            X = (np.linalg.inv(T) @ ph.T)[:3]
-            uv.append((K @ X)[:2] / X[2])
-        px.append(float(np.linalg.norm(uv[0] - uv[1], axis=0).mean()))
-    return {"cam_rot_deg_mean": f(cr, np.mean), "cam_rot_deg_max": f(cr, np.max),
-            "cam_trans_mm_mean": f(ct, np.mean), "cam_trans_mm_max": f(ct, np.max),
-            "cam_shift_px_mean": f(px, np.mean), "cam_shift_px_max": f(px, np.max),
-            "proj_rot_deg_mean": f(pr, np.mean), "proj_rot_deg_max": f(pr, np.max),
-            "proj_trans_mm_mean": f(pt, np.mean), "proj_trans_mm_max": f(pt, np.max)}
 
 
 def state_of(rig: Rig) -> dict:
