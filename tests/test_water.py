@@ -77,7 +77,7 @@ def test_medium_model_matches_synth_image_formation(tmp_path):
     from fastneus.config import load_config
     from fastneus.train.rig import Rig
     from fastneus.train.rays import RayBank, build_projection
-    from fastneus.synth.render import WATER, _Water
+    from fastneus.synth.water import WATER, Water
 
     s = _water_scene(tmp_path, views=1)
     bank, proj = RayBank(s, [0], "cpu"), build_projection(s, [0], "cpu")
@@ -91,7 +91,7 @@ def test_medium_model_matches_synth_image_formation(tmp_path):
     c = torch.tensor([[0.5, 0.4, 0.3], [0.0, 0.0, 0.0]])
     out = {"opacity": torch.tensor([1.0, 0.0]), "depth": r_world / s.bounds.radius * torch.tensor([1.0, 0.0])}
     got = rig.composite(c, out, 0.0)
-    water = _Water(r_world[:1], torch.tensor([0]), 1, "cpu")
+    water = Water(r_world[:1], torch.tensor([0]), 1, "cpu")
     torch.testing.assert_close(got[0], water.seen(c[:1])[0])
     torch.testing.assert_close(got[1], water.background()[0])
     off = Rig(s, [0], bank, proj, load_config("cpu-quick", ["medium=off"]).rig, "cpu")

@@ -7,7 +7,8 @@ from pathlib import Path
 from fastneus.cli import add_device_arg, resolve_device
 from fastneus.errors import FastneusError
 from fastneus.light.patterns import parse_size, pattern_kinds
-from fastneus.synth.render import ALBEDOS, ILLUMS, synthesize
+from fastneus.synth.albedo import ALBEDOS
+from fastneus.synth.render import ILLUMS, synthesize
 from fastneus.synth.shapes import SHAPES
 
 

@@ -29,9 +29,10 @@ from fastneus.geometry.cameras import camera_intrinsics, look_at, projector_intr
 from fastneus.light.patterns import pattern_kinds, sequence_kinds
 from fastneus.light.patterns import make_pattern, write_png
 from fastneus.geometry.projection import Z_MIN, pixel_rays, project_points, refract_rays, sample_pattern
+from fastneus.synth.albedo import Albedo
 from fastneus.synth.shapes import load_mesh, make_shape, normalise_mesh
+from fastneus.synth.water import WATER, WATER_PORT, Water, port_exit
 
-ALBEDOS = ("uniform", "procedural", "checker", "vertex")
 ILLUMS = {"normal": 1.0, "dark": 0.1}
 RIG_BASELINES = (-0.6, -0.2, 0.2, 0.6)  # metres, horizontal, in camera coordinates
 SEQUENCE_BASELINES = (0.6,)  # a sequence is shown by one projector
@@ -60,42 +61,6 @@ def orbit_poses(n: int, distance: float, seed: int = 0, elevation_deg=(10.0, 65.
     return out
 
 
-WATER_PORT = dict(normal=np.array([0.0, 0.0, 1.0]), distance=0.03, thickness=0.01, n_air=1.0, n_glass=1.5,
-                  n_water=1.333)
-# coastal-water-like: red fades first; per RGB channel, 1 / m; far = range of rays that hit nothing
-WATER = {"beta_d": [0.30, 0.10, 0.06], "beta_b": [0.25, 0.12, 0.08], "b_inf": [0.02, 0.12, 0.18], "far": 20.0}
-
-
-class _Water:
-    """Attenuation and back-scatter along the camera rays of one view (see ``synthesize``)."""
-
-    def __init__(self, t_hit: torch.Tensor, hidx: torch.Tensor, n_pix: int, device):
-        self.r = t_hit[:, None]  # the rays start on the port's outer face: all of t is in the water
-        self.bd, self.bb, self.binf = (torch.tensor(WATER[k], device=device) for k in ("beta_d", "beta_b", "b_inf"))
-        self.n_pix = n_pix
-
-    def seen(self, c: torch.Tensor) -> torch.Tensor:
-        return c * torch.exp(-self.bd * self.r) + self.binf * (1 - torch.exp(-self.bb * self.r))
-
-    def background(self) -> torch.Tensor:
-        far = WATER["far"]
-        return (self.binf * (1 - torch.exp(-self.bb * far))).expand(self.n_pix, 3)
-
-
-def _port_exit(X: torch.Tensor, V: torch.Tensor, port_row: torch.Tensor) -> torch.Tensor:
-    """[N, 3] point (device frame) where the light toward X leaves the port's outer face."""
-    n, d0, tg, kg, kw = port_row[0:3], port_row[3], port_row[4], port_row[5], port_row[6]
-    h = X @ n
-    r = X - h[:, None] * n
-    e = r / r.norm(dim=-1, keepdim=True).clamp_min(1e-12)
-    s = (V * e).sum(-1)
-    sw = kw * s
-    cw = torch.sqrt(1 - sw * sw)
-    hw = (h - d0 - tg).clamp_min(0)
-    wdir = cw[:, None] * n + sw[:, None] * e
-    return X - (hw / cw)[:, None] * wdir
-
-
 def blur_kernel(sigma: float, n: int = 5) -> np.ndarray:
     """[n, n] Gaussian of ``sigma`` pixels truncated to n x n taps, normalised to sum 1."""
     h = (n - 1) / 2
@@ -117,54 +82,6 @@ def _sample_blurred(pattern: torch.Tensor, px: torch.Tensor, valid: torch.Tensor
             off = torch.tensor([b - h, a - h], dtype=px.dtype, device=px.device)
             q = q + float(taps[a, b]) * sample_pattern(pattern, px + off, valid)
     return q
-
-
-# --------------------------------------------------------------------------- albedo
-class Albedo:
-    """Surface colour at world points, [N, 3] in [0, 1]."""
-
-    def __init__(self, kind: str, mesh: trimesh.Trimesh, radius: float, seed: int, device):
-        if kind not in ALBEDOS:
-            raise FastneusError(f"unknown albedo {kind!r}; use one of {', '.join(ALBEDOS)}", field="--albedo")
-        self.kind, self.radius, self.device = kind, radius, device
-        if kind == "procedural":
-            rng = np.random.default_rng((seed, 7))
-            # two octaves of smooth value noise: random RGB lattices, trilinear interpolation
-            self.lattices = [(torch.tensor(rng.uniform(0, 1, (1, 3, g, g, g)), dtype=torch.float32, device=device), w)
-                             for g, w in ((6, 0.65), (17, 0.35))]
-        elif kind == "vertex":
-            vis = mesh.visual
-            if vis.kind == "texture":
-                vis = vis.to_color()
-            if vis.kind != "vertex":
-                raise FastneusError("the mesh has no vertex colours; use --albedo procedural or uniform",
-                                    field="--albedo")
-            self.vcol = torch.tensor(np.asarray(vis.vertex_colors)[:, :3] / 255.0, dtype=torch.float32, device=device)
-
-    def __call__(self, P: torch.Tensor, face: torch.Tensor, V: torch.Tensor, F: torch.Tensor) -> torch.Tensor:
-        if self.kind == "uniform":
-            return torch.tensor([0.75, 0.7, 0.65], device=P.device).expand(P.shape[0], 3)
-        if self.kind == "checker":
-            s = self.radius / 4.0
-            k = torch.floor(P / s).long().sum(dim=1) % 2
-            return torch.where(k[:, None] == 1, torch.tensor([0.85, 0.8, 0.7], device=P.device),
-                               torch.tensor([0.25, 0.3, 0.45], device=P.device))
-        if self.kind == "procedural":
-            g = (P / (1.1 * self.radius)).clamp(-1, 1).view(1, -1, 1, 1, 3)
-            val = sum(w * torch.nn.functional.grid_sample(lat, g, mode="bilinear", align_corners=True).view(3, -1).T
-                      for lat, w in self.lattices)
-            return 0.3 + 0.65 * val
-        # vertex colours, barycentric on the hit face
-        f = F[face.long()].long()
-        a, b, c = V[f[:, 0]], V[f[:, 1]], V[f[:, 2]]
-        v0, v1, v2 = b - a, c - a, P - a
-        d00, d01, d11 = (v0 * v0).sum(1), (v0 * v1).sum(1), (v1 * v1).sum(1)
-        d20, d21 = (v2 * v0).sum(1), (v2 * v1).sum(1)
-        den = (d00 * d11 - d01 * d01).clamp_min(1e-20)
-        w1 = ((d11 * d20 - d01 * d21) / den).clamp(0, 1)
-        w2 = ((d00 * d21 - d01 * d20) / den).clamp(0, 1)
-        w0 = (1 - w1 - w2).clamp(0, 1)
-        return w0[:, None] * self.vcol[f[:, 0]] + w1[:, None] * self.vcol[f[:, 1]] + w2[:, None] * self.vcol[f[:, 2]]
 
 
 # --------------------------------------------------------------------------- output folder
@@ -482,7 +399,7 @@ def _synthesize(out, shape, mesh, views, size, pattern, illum, albedo, noise, se
                     need |= q.amax(dim=1) > 0
                 C = torch.tensor(p2w[:3, 3], dtype=torch.float32, device=dev)
                 if wet:  # shadow rays follow the water segment, toward where the light leaves the port
-                    C = _port_exit(Xp, Vd, port_row_t) @ torch.tensor(p2w[:3, :3].T, dtype=P.dtype, device=dev) + \
+                    C = port_exit(Xp, Vd, port_row_t) @ torch.tensor(p2w[:3, :3].T, dtype=P.dtype, device=dev) + \
                         torch.tensor(p2w[:3, 3], dtype=P.dtype, device=dev)
                 to_c = C - P
                 dist = to_c.norm(dim=1)
@@ -498,7 +415,7 @@ def _synthesize(out, shape, mesh, views, size, pattern, illum, albedo, noise, se
 
             nv = hidx.numel()
             mask = hit.view(H, W)
-            water = _Water(th, hidx, H * W, dev) if wet else None
+            water = Water(th, hidx, H * W, dev) if wet else None
             clean = torch.zeros(H * W, 3, dtype=torch.uint8, device=dev)
             if wet:
                 clean[:] = _quantise(water.background())
