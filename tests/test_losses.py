@@ -56,3 +56,37 @@ def test_total_sums_terms_in_a_fixed_order_and_skips_log_values():
     assert torch.equal(losses.total(terms), losses.total(reordered))
     with pytest.raises(ValueError):
         losses.total({"eik": torch.tensor(1.0)})
+
+
+def test_zero_weight_gives_zero_and_no_gradient():
+    op = torch.tensor([0.3, 0.7], requires_grad=True)
+    curv = torch.tensor([0.5, -1.0], requires_grad=True)
+    g = torch.tensor([[2.0, 0.0, 0.0]], requires_grad=True)
+    terms = (losses.mask_bce(op, torch.tensor([1.0, 0.0]), 0.0) | losses.background_free_space(op, torch.tensor([1.0, 1.0]), 0.0)
+             | losses.curvature(curv, 0.0) | losses.eikonal(g, 0.0) | losses.surface_prior(op.sum(), 0.0))
+    for name in ("mask", "background", "curvature", "eikonal", "prior"):
+        assert terms[name].item() == 0.0, name
+    losses.total(terms).backward()
+    assert op.grad.abs().sum() == 0 and curv.grad.abs().sum() == 0 and g.grad.abs().sum() == 0
+    assert terms["eik"].item() == pytest.approx(1.0)  # the log value does not depend on the weight
+
+
+def test_gradients_flow_through_every_weighted_term():
+    op = torch.tensor([0.4, 0.6], requires_grad=True)
+    curv = torch.tensor([0.5, -1.0], requires_grad=True)
+    v = torch.tensor(2.0, requires_grad=True)
+    losses.mask_bce(op, torch.tensor([1.0, 0.0]), 1.0)["mask"].backward()
+    assert op.grad[0] < 0 < op.grad[1]  # opacity pulled toward the mask
+    losses.curvature(curv, 0.5)["curvature"].backward()
+    assert curv.grad.tolist() == pytest.approx([0.25, -0.25])
+    losses.surface_prior(v, 3.0)["prior"].backward()
+    assert v.grad.item() == pytest.approx(3.0)
+
+
+def test_schedules_ramp_in_and_fade_out():
+    assert losses.background_ramp(0.2, 0.2) == 0.0
+    assert losses.background_ramp(0.3, 0.2) == pytest.approx(0.5)
+    assert losses.background_ramp(0.9, 0.2) == 1.0 and losses.background_ramp(0.0, 0.0) == 1.0
+    assert losses.prior_fade(0.0, 3.0, 2.0) == 3.0
+    assert losses.prior_fade(0.5, 3.0, 2.0) == pytest.approx(2.25)
+    assert losses.prior_fade(2.0, 3.0, 2.0) == 0.0

@@ -58,9 +58,37 @@ def background_free_space(opacity: torch.Tensor, is_bg: torch.Tensor, weight: fl
     return {"background": -(weight * (is_bg * torch.log1p(-op)).mean())}
 
 
+def background_ramp(p: float, start_frac: float) -> float:
+    """Ramp-in factor of the background prior: 0 at ``start_frac`` of the run, 1 from twice it.
+
+    Args:
+        p: training progress in [0, 1]; start_frac: ``loss.bg_start_frac`` (0 = full weight at once).
+    Returns:
+        The factor in [0, 1] (the caller applies the term only once ``p >= start_frac``).
+    """
+    return min(1.0, (p - start_frac) / start_frac) if start_frac > 0 else 1.0
+
+
 def surface_prior(value: torch.Tensor, weight: float) -> dict[str, torch.Tensor]:
-    """The decoded / swept surface kept as a fading prior (``SurfacePrior.loss``'s value)."""
+    """The decoded / swept surface kept as a fading prior.
+
+    Args:
+        value: [] scalar, ``SurfacePrior.loss`` of the field (fastneus.train.geometry_init).
+        weight: the faded weight, :func:`prior_fade`.
+    Returns:
+        {"prior": weight * value}.
+    """
     return {"prior": weight * value}
+
+
+def prior_fade(p: float, weight: float, frac: float) -> float:
+    """Weight of the surface prior at progress ``p``: ``init.prior_weight`` fading linearly to 0 at
+    ``init.prior_frac`` of the run (the caller evaluates the prior only while ``p < frac``).
+
+    Args:
+        p: training progress; weight: ``init.prior_weight``; frac: ``init.prior_frac`` (> 0).
+    """
+    return weight * (1.0 - p / frac)
 
 
 def curvature(curv: torch.Tensor, weight: float) -> dict[str, torch.Tensor]:

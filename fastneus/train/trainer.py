@@ -266,10 +266,10 @@ class Trainer:
         if self.masks_used and "mask" in batch:
             terms |= losses.mask_bce(out["opacity"], batch["mask"], c.loss.mask_weight)
         elif self.bg_used and "bg" in batch and p >= c.loss.bg_start_frac:
-            ramp = min(1.0, (p - c.loss.bg_start_frac) / c.loss.bg_start_frac) if c.loss.bg_start_frac > 0 else 1.0
+            ramp = losses.background_ramp(p, c.loss.bg_start_frac)
             terms |= losses.background_free_space(out["opacity"], batch["bg"], ramp * c.loss.bg_weight)
         if self.prior is not None and p < c.init.prior_frac:
-            w = c.init.prior_weight * (1.0 - p / c.init.prior_frac)
+            w = losses.prior_fade(p, c.init.prior_weight, c.init.prior_frac)
             terms |= losses.surface_prior(self.prior.loss(self.field, fit_batch(c) // 2, self.gen, eikonal=False), w)
         if c.loss.curvature_weight > 0 and out["curv"] is not None:
             terms |= losses.curvature(out["curv"], c.loss.curvature_weight)
