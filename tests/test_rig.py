@@ -12,7 +12,7 @@ import torch
 
 from fastneus.config import load_config
 from fastneus.eval.poses import pose_errors
-from fastneus.geometry.se3 import rigid_inv, se3_matrix, so3_exp
+from fastneus.geometry.se3 import rigid_inverse_torch, se3_matrix, so3_exp
 from fastneus.synth.perturb import perturb_scene
 from fastneus.train.rig import Rig
 from fastneus.train.rays import RayBank, build_projection
@@ -30,7 +30,7 @@ def test_so3_exp_matches_rodrigues_and_gradcheck():
     xi0 = torch.zeros(2, 6, dtype=torch.float64, requires_grad=True)  # smooth through the identity
     assert torch.autograd.gradcheck(lambda x: se3_matrix(x, 1.0), (xi0,))
     T = se3_matrix(xi.detach(), 2.0)
-    assert torch.allclose(rigid_inv(T) @ T, torch.eye(4, dtype=torch.float64).expand(3, 4, 4), atol=1e-12)
+    assert torch.allclose(rigid_inverse_torch(T) @ T, torch.eye(4, dtype=torch.float64).expand(3, 4, 4), atol=1e-12)
 
 
 def _undo_xi(E: np.ndarray, radius: float) -> np.ndarray:

@@ -32,7 +32,8 @@ def rig_proj_to_cam(baseline: float, toe_in_distance: float) -> np.ndarray:
 
 
 def rigid_inverse(T: np.ndarray) -> np.ndarray:
-    """Inverse of a rigid 4x4 transform (R^T, -R^T t)."""
+    """Inverse of a rigid 4x4 transform (R^T, -R^T t), numpy; the batched, differentiable torch
+    twin is :func:`fastneus.geometry.se3.rigid_inverse_torch`."""
     out = np.eye(4)
     R = T[:3, :3]
     out[:3, :3] = R.T

@@ -37,8 +37,9 @@ def se3_matrix(xi: torch.Tensor, scale: float = 1.0) -> torch.Tensor:
     return torch.cat([top, bottom], 1)
 
 
-def rigid_inv(T: torch.Tensor) -> torch.Tensor:
-    """Inverse of [..., 4, 4] rigid transforms."""
+def rigid_inverse_torch(T: torch.Tensor) -> torch.Tensor:
+    """Inverse of [..., 4, 4] rigid transforms (batched, differentiable): the torch twin of
+    :func:`fastneus.geometry.cameras.rigid_inverse` (numpy, one 4x4)."""
     R, t = T[..., :3, :3], T[..., :3, 3:]
     Rt = R.transpose(-1, -2)
     top = torch.cat([Rt, -Rt @ t], -1)

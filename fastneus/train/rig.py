@@ -32,7 +32,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from fastneus.geometry.se3 import rigid_inv, se3_matrix
+from fastneus.geometry.cameras import rigid_inverse
+from fastneus.geometry.se3 import rigid_inverse_torch, se3_matrix
 from fastneus.io import atomic_write_json
 
 
@@ -100,8 +101,6 @@ class Rig(torch.nn.Module):
         for k, pid in enumerate(self.proj_ids):
             p2c = scene.projectors[pid].proj_to_cam
             if p2c is not None:
-                from fastneus.geometry.cameras import rigid_inverse  # numpy twin of rigid_inv
-
                 A[:, k] = torch.as_tensor(rigid_inverse(p2c))
                 rigged[:, k] = True
         self.register_buffer("W4", W4.float().to(self.device), persistent=False)
@@ -283,10 +282,10 @@ class Rig(torch.nn.Module):
         proj = self.light_model(self._proj if proj is None else proj)
         if not self.pose_on:
             return proj
-        Ec_inv = rigid_inv(self.cam_correction())[self.frame_view]      # [F, 4, 4]
-        Ep_inv = rigid_inv(self.proj_correction())                      # [P, 4, 4]
+        Ec_inv = rigid_inverse_torch(self.cam_correction())[self.frame_view]      # [F, 4, 4]
+        Ep_inv = rigid_inverse_torch(self.proj_correction())                      # [P, 4, 4]
         A = self.cam_to_proj
-        Ainv = rigid_inv(A)
+        Ainv = rigid_inverse_torch(A)
         P = A.shape[1]
         Ec = Ec_inv[:, None].expand(-1, P, -1, -1)
         moved = torch.where(self.rigged[..., None, None], A @ Ec @ Ainv @ self.W4, self.W4)
