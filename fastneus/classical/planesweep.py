@@ -26,12 +26,14 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from fastneus.light.kinds import get_projector_kind
+
 
 def lit_shares(scene, i: int) -> list[float] | None:
     """Share of lit pixels of each pattern that lights frame ``i`` (one per active projector), or
-    None when no projector is active or one of them is a laser-plane projector (no pattern image)."""
+    None when no projector is active or one of them shows no pattern image (a laser, ...)."""
     act = scene.active_projectors(i)
-    if not act or any(scene.projectors[pid].kind == "laser" for pid, _ in act):
+    if not act or any(not get_projector_kind(scene.projectors[pid].kind).images for pid, _ in act):
         return None
     return [float((scene.pattern_image(pat).max(axis=2) > 0).mean()) for _, pat in act]
 

@@ -68,8 +68,10 @@ class LaserPlane:
 class Projector:
     """Projector intrinsics; ``proj_to_cam`` [4,4] rigs it to the frame's camera, None = free.
 
-    A laser-plane projector (``planes`` given, ``kind == "laser"``) has no image: K is the
-    identity and the size 1 x 1 in memory, and its light is evaluated from the planes."""
+    ``kind`` names its entry in :mod:`fastneus.light.kinds` (default: ``laser`` when ``planes``
+    are given, else ``pattern``). A projector of a kind other than ``pattern`` has no image: K
+    is the identity and the size 1 x 1 in memory, and its light comes from its kind's light op
+    (the laser's from ``planes``; other kinds keep their own fields in ``params``)."""
 
     id: str
     K: np.ndarray  # [3, 3] float64
@@ -78,10 +80,12 @@ class Projector:
     proj_to_cam: np.ndarray | None = None  # [4, 4] float64 or None (pose given per frame)
     planes: list[LaserPlane] | None = None
     port: FlatPort | None = None  # underwater housing
+    kind: str = ""
+    params: dict = field(default_factory=dict)  # kind-specific fields of kinds without an attribute here
 
-    @property
-    def kind(self) -> str:
-        return "laser" if self.planes is not None else "pattern"
+    def __post_init__(self):
+        if not self.kind:
+            self.kind = "laser" if self.planes is not None else "pattern"
 
 
 @dataclass

@@ -22,12 +22,13 @@ import numpy as np
 from fastneus.data.groundtruth import GT_KEYS, read_clean, read_depth, read_normal
 from fastneus.data.images import check_image, image_size, read_mask, read_rgb, undistort
 from fastneus.data.model import (Bounds, Camera, Frame, FrameProjector, Illumination, Pattern, Projector,
-                                 parse_planes, parse_port, planes_to_list, port_to_dict, to_list)
+                                 parse_port, port_to_dict, to_list)
 from fastneus.data.validate import (MAX_SIDE, as_dict, as_int, as_matrix, as_num, as_str, check_bounds_scale,
                                     check_faces_bounds, check_id, check_intrinsics, check_pose,
                                     check_principal_point, field_error, id_field, load_json, require)
 from fastneus.errors import FastneusError
 from fastneus.geometry.cameras import rigid_inverse
+from fastneus.light.kinds import DEFAULT, get_projector_kind
 
 FORMAT = "fastneus-scene"
 VERSION = 1
@@ -114,28 +115,14 @@ class Scene:
         for pid, pr in as_dict(d.get("projectors", {}), file, "projectors").items():
             p = f"projectors.{check_id(pid, file, 'projectors')}"
             pr = as_dict(pr, file, p)
+            kind = get_projector_kind(pr.get("kind", DEFAULT), file, f"{p}.kind")  # its hooks: light/kinds.py
+            fields = {"K": np.eye(3), "width": 1, "height": 1, **kind.call("parse", pr, file, p)}
             p2c = pr.get("proj_to_cam")
-            kind = pr.get("kind", "pattern")
-            if kind not in ("pattern", "laser"):
-                raise field_error(f"unknown projector kind {kind!r}; use pattern or laser", file, f"{p}.kind")
-            if kind == "laser":
-                if pr.get("port") is not None:
-                    raise field_error("a laser projector behind a flat port is not modelled (its light sheets bend "
-                                      "at the port)", file, f"{p}.port")
-                projectors[pid] = Projector(
-                    id=pid, K=np.eye(3), width=1, height=1,
-                    proj_to_cam=None if p2c is None else check_pose(p2c, file, f"{p}.proj_to_cam"),
-                    planes=parse_planes(require(pr, "planes", file, p), file, f"{p}.planes"))
-                continue
-            projectors[pid] = Projector(
-                id=pid, K=check_intrinsics(require(pr, "K", file, p), file, f"{p}.K"),
-                width=as_int(require(pr, "width", file, p), file, f"{p}.width", maximum=MAX_SIDE),
-                height=as_int(require(pr, "height", file, p), file, f"{p}.height", maximum=MAX_SIDE),
-                proj_to_cam=None if p2c is None else check_pose(p2c, file, f"{p}.proj_to_cam"),
-                port=parse_port(pr.get("port"), file, f"{p}.port"))
+            projectors[pid] = Projector(id=pid, proj_to_cam=None if p2c is None else
+                                        check_pose(p2c, file, f"{p}.proj_to_cam"), kind=kind.name, **fields)
 
         for pid, pj in projectors.items():
-            if pj.kind == "pattern":
+            if get_projector_kind(pj.kind).images:
                 check_principal_point(pj.K, pj.width, pj.height, file, f"projectors.{pid}.K")
         patterns: dict[str, Pattern] = {}
         pattern_sizes: dict[str, tuple[int, int]] = {}
@@ -188,9 +175,9 @@ class Scene:
                 on = fp.get("on", True)
                 if not isinstance(on, bool):
                     raise field_error("expected true or false", file, f"{pp}.on")
-                if projectors[pid].kind == "laser" and pat is not None:
-                    raise field_error(f"projector {pid!r} is a laser (planes); it shows no pattern, use on: true/false",
-                                      file, f"{pp}.pattern")
+                if pat is not None and not get_projector_kind(projectors[pid].kind).images:
+                    raise field_error(f"projector {pid!r} is a {projectors[pid].kind} projector; it shows no pattern, "
+                                      "use on: true/false", file, f"{pp}.pattern")
                 if pat is not None:
                     if not isinstance(pat, str) or pat not in patterns:
                         raise field_error(f"unknown pattern id {pat!r}; known: {sorted(patterns)}", file,
@@ -271,8 +258,8 @@ class Scene:
             fd: dict[str, Any] = {"image": rp(f.image), "camera": f.camera, "cam_to_world": to_list(f.cam_to_world),
                                   "view": int(f.view), "projectors": {}}
             for pid, fp in f.projectors.items():
-                e: dict[str, Any] = {"on": bool(fp.on)} if self.projectors[pid].kind == "laser" else \
-                    {"pattern": fp.pattern}
+                e: dict[str, Any] = {"pattern": fp.pattern} if get_projector_kind(self.projectors[pid].kind).images \
+                    else {"on": bool(fp.on)}
                 if fp.proj_to_world is not None:
                     e["proj_to_world"] = to_list(fp.proj_to_world)
                 fd["projectors"][pid] = e
@@ -288,12 +275,9 @@ class Scene:
             "cameras": {c.id: {"K": to_list(c.K), "width": c.width, "height": c.height, "dist": to_list(c.dist),
                                **({"port": port_to_dict(c.port)} if c.port is not None else {})}
                         for c in self.cameras.values()},
-            "projectors": {p.id: ({"K": to_list(p.K), "width": p.width, "height": p.height,
-                                   "proj_to_cam": to_list(p.proj_to_cam),
-                                   **({"port": port_to_dict(p.port)} if p.port is not None else {})}
-                                  if p.kind == "pattern" else
-                                  {"kind": "laser", "proj_to_cam": to_list(p.proj_to_cam),
-                                   "planes": planes_to_list(p.planes)}) for p in self.projectors.values()},
+            "projectors": {p.id: {**({"kind": p.kind} if p.kind != DEFAULT else {}),
+                                  "proj_to_cam": to_list(p.proj_to_cam),
+                                  **get_projector_kind(p.kind).call("serialise", p)} for p in self.projectors.values()},
             "patterns": {q.id: {"file": rp(q.file)} for q in self.patterns.values()},
             "frames": frames,
             "illumination": {"i_r": float(il.i_r), "i_b": float(il.i_b), "ambient": float(il.ambient),

@@ -33,6 +33,7 @@ from fastneus.data.validate import check_faces_bounds, check_intrinsics, check_p
 from fastneus.errors import FastneusError
 from fastneus.formats.safe_npz import npz_array, open_npz, read_number_dict, read_pickled_value
 from fastneus.geometry.cameras import rigid_inverse
+from fastneus.light.kinds import get_projector_kind
 
 NPZ = "cameras_sphere.npz"
 IMG_EXT = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
@@ -366,10 +367,11 @@ def write_activeneus(scene: Scene, out: str | os.PathLike, downscale: int = 1) -
 
 def _write_activeneus(scene: Scene, out: Path, downscale: int) -> None:
     """:func:`write_activeneus` into a fresh (staging) folder ``out``; files are named by index."""
-    lasers = [p for p, pj in scene.projectors.items() if pj.kind == "laser"]
-    if lasers:
-        raise FastneusError(f"laser-plane projectors ({', '.join(lasers)}) have no ActiveNeuS form; keep the "
-                            "fastneus format", field=f"projectors.{lasers[0]}")
+    lights = [p for p, pj in scene.projectors.items() if not get_projector_kind(pj.kind).images]
+    if lights:
+        noun = get_projector_kind(scene.projectors[lights[0]].kind).noun
+        raise FastneusError(f"{noun} projectors ({', '.join(lights)}) have no ActiveNeuS form; keep the "
+                            "fastneus format", field=f"projectors.{lights[0]}")
     import cv2
 
     from fastneus.io import atomic_write, atomic_write_image

@@ -55,6 +55,7 @@ from fastneus.data.model import parse_port, port_to_dict
 from fastneus.data.scene import FORMAT, VERSION, Scene
 from fastneus.data.validate import MAX_SIDE, load_json
 from fastneus.errors import FastneusError
+from fastneus.light.kinds import get_projector_kind
 
 NAME = "transforms.json"
 GL_TO_CV = np.diag([1.0, -1.0, -1.0, 1.0])  # flips y and z: OpenGL camera axes <-> OpenCV
@@ -333,8 +334,9 @@ def _write_nerf(scene: Scene, stage: Path, final: Path, copy_files: bool) -> Non
                  for q in scene.patterns.values()}
     proj_block: dict[str, Any] = {}
     for pid, pj in scene.projectors.items():
-        if pj.kind == "laser":
-            raise FastneusError("laser-plane projectors cannot be written to transforms.json; keep the fastneus "
+        kind = get_projector_kind(pj.kind)
+        if not kind.images:
+            raise FastneusError(f"{kind.noun} projectors cannot be written to transforms.json; keep the fastneus "
                                 "format", field=f"projectors.{pid}")
         e = intr(pj.K, pj.width, pj.height)
         if pj.port is not None:

@@ -25,9 +25,9 @@ import math
 from pathlib import Path
 
 import numpy as np
-import torch
 
-from fastneus.data.model import LaserPlane, Projector, parse_planes
+from fastneus.data.model import LaserPlane, Projector, parse_planes, planes_to_list
+from fastneus.data.validate import field_error, require
 from fastneus.errors import FastneusError
 
 UNITS = {"mm": 1e-3, "cm": 1e-2, "m": 1.0}
@@ -64,9 +64,38 @@ def _unit(v) -> np.ndarray:
     return v / np.linalg.norm(v)
 
 
-def light_at_points(points: torch.Tensor, world_to_proj: np.ndarray, planes: list[LaserPlane]) -> torch.Tensor:
+# ---------------------------------------------------------------- the laser's projector-kind hooks
+# (registered in fastneus.light.kinds; signatures there)
+def parse_laser_projector(entry: dict, file, fld: str) -> dict:
+    """The planes of a laser projector's scene.json entry (behind a flat port its sheets would bend:
+    not modelled)."""
+    if entry.get("port") is not None:
+        raise field_error("a laser projector behind a flat port is not modelled (its light sheets bend "
+                          "at the port)", file, f"{fld}.port")
+    return {"planes": parse_planes(require(entry, "planes", file, fld), file, f"{fld}.planes")}
+
+
+def laser_projector_to_dict(p: Projector) -> dict:
+    return {"planes": planes_to_list(p.planes)}
+
+
+def pack_laser_projectors(projectors: list[Projector | None], device):
+    """[P, L, 12] planes for ``laser_light`` (None: a projector of another kind, no planes)."""
+    from fastneus.kernels.project import pack_planes  # on use: loading a scene must not pay for torch
+
+    return pack_planes([None if p is None else p.planes for p in projectors], device)
+
+
+def laser_synth_light(points, world_to_proj: np.ndarray, projector: Projector):
+    """[N, 3] light of a laser projector at world points (``fastneus synth``)."""
+    return light_at_points(points, world_to_proj, projector.planes)
+
+
+def light_at_points(points, world_to_proj: np.ndarray, planes: list[LaserPlane]):
     """[N, 3] light of one laser projector at points (its own frame = ``world_to_proj`` of them),
     through the torch twin of the kernel (same maths as training)."""
+    import torch  # on use: loading a scene (which parses laser projectors here) must not pay for torch
+
     from fastneus.kernels.project import laser_light_torch, pack_planes
 
     n = points.shape[0]
@@ -84,6 +113,8 @@ def planes_to_pattern(planes: list[LaserPlane], K: np.ndarray, width: int, heigh
     at other depths, where a real sheet keeps its metric thickness)."""
     v, u = np.mgrid[0:height, 0:width]
     rays = np.stack([u.ravel() + 0.5, v.ravel() + 0.5, np.ones(u.size)], 1) @ np.linalg.inv(K).T
+    import torch  # on use: see light_at_points
+
     pts = torch.tensor(rays / rays[:, 2:] * depth, dtype=torch.float64)
     q = light_at_points(pts, np.eye(4), planes).numpy().reshape(height, width, 3)
     return np.clip(np.round(q * 255), 0, 255).astype(np.uint8)

@@ -26,6 +26,7 @@ from fastneus.data.model import Bounds, Camera, FlatPort, Frame, FrameProjector,
 from fastneus.data.scene import Scene
 from fastneus.errors import FastneusError
 from fastneus.geometry.cameras import camera_intrinsics, look_at, projector_intrinsics, rig_proj_to_cam
+from fastneus.light.kinds import get_projector_kind
 from fastneus.light.patterns import pattern_kinds, sequence_kinds
 from fastneus.light.patterns import make_pattern, write_png
 from fastneus.geometry.projection import Z_MIN, pixel_rays, project_points, refract_rays, sample_pattern
@@ -291,7 +292,7 @@ def _synthesize(out, shape, mesh, views, size, pattern, illum, albedo, noise, se
         for k, p in enumerate(projectors.values()):
             p.planes = crosslaser_planes(Kp, PW, PH, cam_distance, seed=seed + k, count=lo.get("count", 8),
                                          line_width=lo.get("line_width", 3))
-            p.K, p.width, p.height = np.eye(3), 1, 1
+            p.K, p.width, p.height, p.kind = np.eye(3), 1, 1, "laser"
     pids = list(projectors)
     opts = dict(pattern_opts or {})
     # per shot j of a view: {projector id -> pattern id}; images by pattern id
@@ -386,11 +387,10 @@ def _synthesize(out, shape, mesh, views, size, pattern, illum, albedo, noise, se
                     att_k = torch.exp(-torch.tensor(WATER["beta_d"], device=dev) * Xp.norm(dim=-1, keepdim=True))
                 front = z > Z_MIN
                 need = torch.zeros(P.shape[0], dtype=torch.bool, device=dev)
+                pkind = get_projector_kind(projectors[p].kind)
                 for j, shot in enumerate(shots):
-                    if laser_planes:
-                        from fastneus.light.lasers import light_at_points
-
-                        q = light_at_points(P, w2p, projectors[p].planes).to(P.dtype)
+                    if not pkind.images:  # an emitter (laser planes, ...): its kind's synth hook
+                        q = pkind.call("synth", P, w2p, projectors[p]).to(P.dtype)
                     else:
                         q = _sample_blurred(pat_t[shot[p]], px, front, taps)
                     if wet:
