@@ -10,6 +10,7 @@ import functools
 import torch
 
 from fastneus.kernels import get_op
+from fastneus.light.kinds import get_projector_kind
 
 
 def _empty(n_rays: int, device, dtype=torch.float32, shots: int = 0) -> dict:
@@ -78,7 +79,7 @@ def render_rays(field, bits: torch.Tensor, grid_res: int, proj, origins: torch.T
     color = field.color(pos, grad, d_s, geo)
     pattern_on = cfg.illum.use_pattern if use_pattern is None else use_pattern
     pat = proj.pattern if pattern_on else torch.full_like(proj.pattern, -1)
-    blur, laser_on = getattr(proj, "blur", None), getattr(proj, "laser_on", None)
+    blur, lights = getattr(proj, "blur", None), getattr(proj, "lights", None) or {}
     port, sigma = getattr(proj, "port", None), getattr(proj, "sigma", None)
 
     has_pattern = pattern_on and getattr(proj, "has_pattern", True)
@@ -87,7 +88,7 @@ def render_rays(field, bits: torch.Tensor, grid_res: int, proj, origins: torch.T
     def light(f: torch.Tensor):
         """Projected light Q for frame rows ``f`` [B] computed apart (one thread per sample) and
         handed to the render kernel, or None: the render kernel samples the patterns itself."""
-        if blur is None and laser_on is None and port is None and sigma is None and not split:
+        if blur is None and not lights and port is None and sigma is None and not split:
             return None
         q_ext, b = None, blur
         if b is not None or port is not None or sigma is not None or has_pattern:
@@ -95,10 +96,11 @@ def render_rays(field, bits: torch.Tensor, grid_res: int, proj, origins: torch.T
                 b = _identity_blur(pat.shape[1], device)
             q_ext = get_op("project_pattern", cfg.run.backend)(pos, ray_index, offsets, counts, f, proj.K, proj.W,
                                                            pat, proj.store, b, port=port, sigma=sigma)
-        if laser_on is not None and pattern_on:
-            ql = get_op("laser_light", cfg.run.backend)(pos, ray_index, offsets, counts, f, proj.W, laser_on,
-                                                    proj.planes)
-            q_ext = ql if q_ext is None else q_ext + ql
+        if pattern_on:  # emitter kinds (laser planes, ...): each kind's light op, in registration order
+            for name, (on, packed) in lights.items():
+                ql = get_projector_kind(name).light_op(cfg.run.backend)(pos, ray_index, offsets, counts, f, proj.W,
+                                                                        on, packed)
+                q_ext = ql if q_ext is None else q_ext + ql
         return q_ext
 
     shots = fidx[:, None] if fidx.dim() == 1 else fidx

@@ -7,13 +7,14 @@ Projectors are flattened to per-(frame, projector) matrices and one shared
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import torch
 
 from fastneus.errors import FastneusError
 from fastneus.kernels.render import PatternStore
+from fastneus.light.kinds import get_projector_kind, projector_kinds
 
 
 def normalised_camera(scene, i: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -35,9 +36,10 @@ class Projection:
         pattern: [F, P] int32 index into ``store`` (-1 = off).
         store: all distinct patterns, packed once.
         blur: [P, n*n] per-projector pattern blur taps (fastneus.train.rig), None = plain sampling.
-        laser_on: [F, P] int32, 1 where projector k is a laser-plane projector lit in frame f
-            (None: the scene has no laser projectors).
-        planes: [P, L, 12] packed light planes (``fastneus.kernels.project.pack_planes``).
+        lights: per emitter kind present in the scene (``fastneus.light.kinds``, registration
+            order): ``(on, packed)``, on [F, P] int32 = 1 where projector k is of that kind and lit
+            in frame f, packed = the kind's pack hook of the projectors (its light op's input).
+            ``laser_on`` and ``planes`` read the laser's.
         port: [P, 8] flat ports of the projectors (flag column 0 = in air), None = none has one.
         sigma: [3] attenuation of the projected light in the medium (fastneus.train.rig), None = none.
         has_pattern: some frame shows a pattern image (host-side: the renderer asks it every step,
@@ -49,11 +51,20 @@ class Projection:
     pattern: torch.Tensor
     store: PatternStore
     blur: torch.Tensor | None = None
-    laser_on: torch.Tensor | None = None
-    planes: torch.Tensor | None = None
     port: torch.Tensor | None = None
     sigma: torch.Tensor | None = None
     has_pattern: bool = True
+    lights: dict[str, tuple[torch.Tensor, torch.Tensor]] = field(default_factory=dict)
+
+    @property
+    def laser_on(self) -> torch.Tensor | None:
+        """[F, P] int32, 1 where projector k is a laser-plane projector lit in frame f (None: no lasers)."""
+        return self.lights["laser"][0] if "laser" in self.lights else None
+
+    @property
+    def planes(self) -> torch.Tensor | None:
+        """[P, L, 12] packed light planes (``fastneus.kernels.project.pack_planes``), None: no lasers."""
+        return self.lights["laser"][1] if "laser" in self.lights else None
 
 
 def build_projection(scene, frames: list[int], device, refraction: bool = True) -> Projection:
@@ -67,17 +78,19 @@ def build_projection(scene, frames: list[int], device, refraction: bool = True) 
     K = np.zeros((F, P, 3, 3))
     W = np.zeros((F, P, 3, 4))
     pat = -np.ones((F, P), dtype=np.int32)
-    lasers = [pid for pid in proj_ids if scene.projectors[pid].kind == "laser"]
-    laser_on = np.zeros((F, P), dtype=np.int32)
+    kind_of = {pid: get_projector_kind(scene.projectors[pid].kind) for pid in proj_ids}
+    # emitters (every kind but the image projector) present, in registration order: their light ops
+    emit = [kd.name for kd in projector_kinds() if not kd.images and any(k is kd for k in kind_of.values())]
+    on = {name: np.zeros((F, P), dtype=np.int32) for name in emit}
     for a, i in enumerate(frames):
         frame = scene.frames[i]
         for k, pid in enumerate(proj_ids):
             K[a, k] = np.eye(3)
             W[a, k, :, :3] = np.eye(3)
             fp = frame.projectors.get(pid)
-            if fp is not None and pid in lasers and fp.on:
+            if fp is not None and not kind_of[pid].images and fp.on:
                 W[a, k] = (np.asarray(scene.world_to_proj(i, pid), dtype=np.float64) @ S)[:3]
-                laser_on[a, k] = 1
+                on[kind_of[pid].name][a, k] = 1
                 continue
             if fp is None or fp.pattern is None:
                 continue
@@ -90,11 +103,10 @@ def build_projection(scene, frames: list[int], device, refraction: bool = True) 
         PatternStore([np.zeros((1, 1, 3), np.uint8)], device)
     t = lambda a, dt=torch.float32: torch.as_tensor(a, dtype=dt, device=device).contiguous()  # noqa: E731
     proj = Projection(t(K), t(W), t(pat, torch.int32), store, has_pattern=bool((pat >= 0).any()))
-    if lasers:
-        from fastneus.kernels.project import pack_planes
-
-        proj.laser_on = t(laser_on, torch.int32)
-        proj.planes = pack_planes([scene.projectors[p].planes for p in proj_ids], device)
+    for name in emit:
+        mine = [scene.projectors[p] if kind_of[p].name == name else None for p in proj_ids]
+        packed = get_projector_kind(name).call("pack", mine, device)
+        proj.lights[name] = (t(on[name], torch.int32), packed)
     if refraction and any(scene.projectors[p].port is not None for p in proj_ids):
         rows = [scene.projectors[p].port.row() if scene.projectors[p].port is not None else [0.0] * 8
                 for p in proj_ids]

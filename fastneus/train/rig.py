@@ -35,6 +35,7 @@ import torch
 from fastneus.geometry.cameras import rigid_inverse
 from fastneus.geometry.se3 import rigid_inverse_torch, se3_matrix
 from fastneus.io import atomic_write_json
+from fastneus.light.kinds import get_projector_kind
 
 
 # --------------------------------------------------------------------------- the rig
@@ -200,10 +201,10 @@ class Rig(torch.nn.Module):
 
     def kernel_ops(self) -> tuple[str, ...]:
         """Extra kernel ops a training step uses (compiled before the clock starts)."""
-        q_ext = self.blur_on or self.medium_on or self._proj.laser_on is not None or self._proj.port is not None \
-            or self.split_patterns
+        lights = getattr(self._proj, "lights", None) or {}  # emitter kinds (laser planes, ...)
+        q_ext = self.blur_on or self.medium_on or bool(lights) or self._proj.port is not None or self.split_patterns
         ops = ("project_pattern",) if q_ext else ()
-        return ops + (("laser_light",) if self._proj.laser_on is not None else ())
+        return ops + tuple(op for op in (get_projector_kind(n).kernel_op() for n in lights) if op)
 
     def param_groups(self) -> list[dict]:
         """Adam groups of the enabled parts (names start with ``rig_``)."""
