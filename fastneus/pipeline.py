@@ -117,7 +117,9 @@ def finish_run(trainer, console=None, eval_frames: list[int] | None = None, mesh
         ill = {k: metrics[k] for k in ("i_r", "i_b", "i_r_gt", "i_b_gt", "i_r_err", "i_b_err") if k in metrics}
         atomic_write_json(run / "illumination.json", ill)
     with clock.phase("report"):
-        write_report(run, metrics, paths, cfg.to_dict(), title=f"fastneus: {scene.name or scene.root.name}")
+        # the clock read here, after the eval phase closed: the page's wall-clock table has its eval row
+        write_report(run, metrics, paths, cfg.to_dict(), title=f"fastneus: {scene.name or scene.root.name}",
+                     renders=renders, scene=scene, mesh=mesh, timing=clock.summary())
     # the final word on time and memory: every phase done
     metrics.update(timing.peak_memory(trainer.device))
     metrics["timing"] = clock.summary()
