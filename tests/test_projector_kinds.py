@@ -1,4 +1,4 @@
-"""Projector kinds register in one place (fastneus/light/kinds.py, issue 21 item 4).
+"""Projector kinds register in one place (fastneus/data/kinds.py, issue 21 item 4).
 
 A toy kind registered from this file -- a "flood" projector lighting its whole frustum (z > 0
 in its frame) with one colour -- reaches every place that handles projectors: scene.json
@@ -17,7 +17,7 @@ import torch
 from fastneus.data.scene import Scene
 from fastneus.data.validate import field_error
 from fastneus.errors import FastneusError
-from fastneus.light.kinds import (ProjectorKind, get_projector_kind, projector_kinds, register_projector_kind,
+from fastneus.data.kinds import (ProjectorKind, get_projector_kind, projector_kinds, register_projector_kind,
                                   registered)
 
 CALLS = {"light": 0}

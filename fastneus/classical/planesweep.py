@@ -26,7 +26,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from fastneus.light.kinds import get_projector_kind
+from fastneus.data.kinds import get_projector_kind
 
 
 def lit_shares(scene, i: int) -> list[float] | None:

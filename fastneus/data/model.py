@@ -68,7 +68,7 @@ class LaserPlane:
 class Projector:
     """Projector intrinsics; ``proj_to_cam`` [4,4] rigs it to the frame's camera, None = free.
 
-    ``kind`` names its entry in :mod:`fastneus.light.kinds` (default: ``laser`` when ``planes``
+    ``kind`` names its entry in :mod:`fastneus.data.kinds` (default: ``laser`` when ``planes``
     are given, else ``pattern``). A projector of a kind other than ``pattern`` has no image: K
     is the identity and the size 1 x 1 in memory, and its light comes from its kind's light op
     (the laser's from ``planes``; other kinds keep their own fields in ``params``)."""

@@ -28,7 +28,7 @@ from fastneus.data.validate import (MAX_SIDE, as_dict, as_int, as_matrix, as_num
                                     check_principal_point, field_error, id_field, load_json, require)
 from fastneus.errors import FastneusError
 from fastneus.geometry.cameras import rigid_inverse
-from fastneus.light.kinds import DEFAULT, get_projector_kind
+from fastneus.data.kinds import DEFAULT, get_projector_kind
 
 FORMAT = "fastneus-scene"
 VERSION = 1
@@ -115,7 +115,7 @@ class Scene:
         for pid, pr in as_dict(d.get("projectors", {}), file, "projectors").items():
             p = f"projectors.{check_id(pid, file, 'projectors')}"
             pr = as_dict(pr, file, p)
-            kind = get_projector_kind(pr.get("kind", DEFAULT), file, f"{p}.kind")  # its hooks: light/kinds.py
+            kind = get_projector_kind(pr.get("kind", DEFAULT), file, f"{p}.kind")  # its hooks: data/kinds.py
             fields = {"K": np.eye(3), "width": 1, "height": 1, **kind.call("parse", pr, file, p)}
             p2c = pr.get("proj_to_cam")
             projectors[pid] = Projector(id=pid, proj_to_cam=None if p2c is None else

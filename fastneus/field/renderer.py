@@ -10,7 +10,7 @@ import functools
 import torch
 
 from fastneus.kernels import get_op
-from fastneus.light.kinds import get_projector_kind
+from fastneus.data.kinds import get_projector_kind
 
 
 def _empty(n_rays: int, device, dtype=torch.float32, shots: int = 0) -> dict:

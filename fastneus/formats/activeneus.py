@@ -33,7 +33,7 @@ from fastneus.data.validate import check_faces_bounds, check_intrinsics, check_p
 from fastneus.errors import FastneusError
 from fastneus.formats.safe_npz import npz_array, open_npz, read_number_dict, read_pickled_value
 from fastneus.geometry.cameras import rigid_inverse
-from fastneus.light.kinds import get_projector_kind
+from fastneus.data.kinds import get_projector_kind
 
 NPZ = "cameras_sphere.npz"
 IMG_EXT = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")

@@ -55,7 +55,7 @@ from fastneus.data.model import parse_port, port_to_dict
 from fastneus.data.scene import FORMAT, VERSION, Scene
 from fastneus.data.validate import MAX_SIDE, load_json
 from fastneus.errors import FastneusError
-from fastneus.light.kinds import get_projector_kind
+from fastneus.data.kinds import get_projector_kind
 
 NAME = "transforms.json"
 GL_TO_CV = np.diag([1.0, -1.0, -1.0, 1.0])  # flips y and z: OpenGL camera axes <-> OpenCV

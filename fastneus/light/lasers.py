@@ -65,7 +65,7 @@ def _unit(v) -> np.ndarray:
 
 
 # ---------------------------------------------------------------- the laser's projector-kind hooks
-# (registered in fastneus.light.kinds; signatures there)
+# (registered in fastneus.data.kinds; signatures there)
 def parse_laser_projector(entry: dict, file, fld: str) -> dict:
     """The planes of a laser projector's scene.json entry (behind a flat port its sheets would bend:
     not modelled)."""

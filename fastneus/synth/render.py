@@ -26,7 +26,7 @@ from fastneus.data.model import Bounds, Camera, FlatPort, Frame, FrameProjector,
 from fastneus.data.scene import Scene
 from fastneus.errors import FastneusError
 from fastneus.geometry.cameras import camera_intrinsics, look_at, projector_intrinsics, rig_proj_to_cam
-from fastneus.light.kinds import get_projector_kind
+from fastneus.data.kinds import get_projector_kind
 from fastneus.light.patterns import pattern_kinds, sequence_kinds
 from fastneus.light.patterns import make_pattern, write_png
 from fastneus.geometry.projection import Z_MIN, pixel_rays, project_points, refract_rays, sample_pattern

@@ -14,7 +14,7 @@ import torch
 
 from fastneus.errors import FastneusError
 from fastneus.kernels.render import PatternStore
-from fastneus.light.kinds import get_projector_kind, projector_kinds
+from fastneus.data.kinds import get_projector_kind, projector_kinds
 
 
 def normalised_camera(scene, i: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -36,7 +36,7 @@ class Projection:
         pattern: [F, P] int32 index into ``store`` (-1 = off).
         store: all distinct patterns, packed once.
         blur: [P, n*n] per-projector pattern blur taps (fastneus.train.rig), None = plain sampling.
-        lights: per emitter kind present in the scene (``fastneus.light.kinds``, registration
+        lights: per emitter kind present in the scene (``fastneus.data.kinds``, registration
             order): ``(on, packed)``, on [F, P] int32 = 1 where projector k is of that kind and lit
             in frame f, packed = the kind's pack hook of the projectors (its light op's input).
             ``laser_on`` and ``planes`` read the laser's.

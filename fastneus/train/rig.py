@@ -35,7 +35,7 @@ import torch
 from fastneus.geometry.cameras import rigid_inverse
 from fastneus.geometry.se3 import rigid_inverse_torch, se3_matrix
 from fastneus.io import atomic_write_json
-from fastneus.light.kinds import get_projector_kind
+from fastneus.data.kinds import get_projector_kind
 
 
 # --------------------------------------------------------------------------- the rig
