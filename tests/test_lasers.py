@@ -43,6 +43,8 @@ def _args(inp, on):
 def _fan_margin_ok(inp, planes64, on, margin=1e-4):
     """No sample within ``margin`` of a fan edge (where the hard cut makes gradients jump)."""
     pos, W = inp["pos"].double(), inp["proj_W"].double()
+    planes64 = planes64.to(pos.device)  # callers pass CPU planes; the inputs may be on CUDA
+    on = on.to(pos.device)
     fr = inp["ray_frame"].long()[inp["ray_index"].long()]
     for k in range(W.shape[1]):
         X = torch.einsum("sij,sj->si", W[fr, k, :, :3], pos) + W[fr, k, :, 3]
