@@ -18,9 +18,11 @@ def photometric(pred: torch.Tensor, target: torch.Tensor) -> dict[str, torch.Ten
         pred: [B, 3] or [B, K, 3] rendered colour (with the pattern), clipped at 1 like the camera.
         target: same shape, the photo.
     Returns:
-        {"rgb": mean |pred - target|} (weight 1: the loss's unit).
+        {"rgb": mean |pred - target|} (weight 1: the loss's unit), and "mse" (for the log's PSNR,
+        from the same difference, not summed).
     """
-    return {"rgb": (pred - target).abs().mean()}
+    err = (pred - target).abs()
+    return {"rgb": err.mean(), "mse": (err.detach() ** 2).mean()}
 
 
 def eikonal(grads: torch.Tensor, weight: float) -> dict[str, torch.Tensor]:

@@ -282,9 +282,7 @@ class Trainer:
         if not stepped:
             self.skipped += 1
             return None
-        with torch.no_grad():
-            mse = ((pred - batch["rgb"]) ** 2).mean()
-        return {"loss": loss.detach(), "l1": terms["rgb"].detach(), "mse": mse, "eik": terms["eik"],
+        return {"loss": loss.detach(), "l1": terms["rgb"].detach(), "mse": terms["mse"], "eik": terms["eik"],
                 "spr": s / batch["origins"].shape[0], "samples": s}
 
     # ------------------------------------------------------------------ loop
