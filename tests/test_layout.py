@@ -13,7 +13,7 @@ import fastneus
 
 PKG = Path(fastneus.__file__).resolve().parent
 LAYERS = [
-    {"fastneus.errors", "fastneus.io", "fastneus.timing", "fastneus.kernels", "fastneus.configs"},
+    {"fastneus.errors", "fastneus.io", "fastneus.timing", "fastneus.plugins", "fastneus.kernels", "fastneus.configs"},
     {"fastneus.config", "fastneus.geometry"},
     {"fastneus.data", "fastneus.light"},
     {"fastneus.formats", "fastneus.field", "fastneus.classical"},

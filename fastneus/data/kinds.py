@@ -41,15 +41,14 @@ module), its name and fields in ``fastneus/data/scene.schema.json`` and docs/FOR
 """
 from __future__ import annotations
 
-import importlib
-from collections.abc import Callable, Iterator
-from contextlib import contextmanager
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
 from fastneus.data.model import parse_port, port_to_dict, to_list
 from fastneus.data.validate import MAX_SIDE, as_int, check_intrinsics, require
 from fastneus.errors import FastneusError
+from fastneus.plugins import registered_in, resolve
 
 DEFAULT = "pattern"  # the kind of a scene.json projector entry without "kind"
 
@@ -108,15 +107,6 @@ class ProjectorKind:
 _KINDS: dict[str, ProjectorKind] = {}
 
 
-def resolve(target: str | Callable) -> Callable:
-    """A callable as is; ``"module:attr[.attr...]"`` imported now."""
-    if callable(target):
-        return target
-    mod, _, attr = target.partition(":")
-    obj = importlib.import_module(mod)
-    for part in attr.split("."):
-        obj = getattr(obj, part)
-    return obj
 
 
 def register_projector_kind(kind: ProjectorKind) -> ProjectorKind:
@@ -138,14 +128,9 @@ def unregister_projector_kind(name: str) -> None:
     del _KINDS[name]
 
 
-@contextmanager
-def registered(kind: ProjectorKind) -> Iterator[ProjectorKind]:
+def registered(kind: ProjectorKind):
     """``with registered(kind):`` the kind is registered inside the block only."""
-    register_projector_kind(kind)
-    try:
-        yield kind
-    finally:
-        unregister_projector_kind(kind.name)
+    return registered_in(register_projector_kind, unregister_projector_kind, kind)
 
 
 def projector_kinds() -> list[ProjectorKind]:

@@ -11,13 +11,12 @@ call at the bottom of this file.
 """
 from __future__ import annotations
 
-import importlib
-from collections.abc import Callable, Iterator
-from contextlib import contextmanager
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
 from fastneus.errors import FastneusError
+from fastneus.plugins import registered_in, resolve
 
 
 @dataclass(frozen=True)
@@ -57,13 +56,6 @@ class SceneFormat:
 _FORMATS: dict[str, SceneFormat] = {}
 
 
-def resolve(target: str) -> Callable:
-    """The object named by ``"module:attr[.attr...]"`` (the module imported now)."""
-    mod, _, attr = target.partition(":")
-    obj = importlib.import_module(mod)
-    for part in attr.split("."):
-        obj = getattr(obj, part)
-    return obj
 
 
 def register_format(fmt: SceneFormat) -> SceneFormat:
@@ -81,14 +73,9 @@ def unregister_format(name: str) -> None:
     del _FORMATS[name]
 
 
-@contextmanager
-def registered(fmt: SceneFormat) -> Iterator[SceneFormat]:
+def registered(fmt: SceneFormat):
     """``with registered(fmt):`` the format is registered inside the block only."""
-    register_format(fmt)
-    try:
-        yield fmt
-    finally:
-        unregister_format(fmt.name)
+    return registered_in(register_format, unregister_format, fmt)
 
 
 def formats() -> list[SceneFormat]:
