@@ -58,29 +58,36 @@ def test_loss_is_zero_on_the_surface_and_grows_off_it():
 
 def test_training_keeps_the_prior_after_a_decoded_init(tmp_path):
     """One Gray-code view: with the prior the SDF stays at the decoded points while training on
-    photos whose pattern is wrong (illumination far off), without it it drifts further."""
+    photos whose pattern is wrong (illumination far off), without it it drifts further.
+
+    Fixed scene seeds: over 8 random seeds the ratio was 0.29-0.55 on seven and 1.22 on one
+    (seed 1, kept here on purpose), so a single random scene made CI flaky; the median of three
+    fixed scenes is what is asserted."""
     from fastneus.train.geometry_init import decoded_points
     from fastneus.synth.render import synthesize
     from fastneus.train.trainer import Trainer
 
-    s = synthesize(tmp_path / "g", shape="toy", views=1, size=(48, 48), pattern="graycode",
-                   seed=int(np.random.default_rng().integers(1 << 20)), progress=False, contact_sheet=False)
-    dec = decoded_points(s, [list(range(20))])
-    b = s.bounds
-    P = torch.tensor((dec["points"] - b.center) / b.radius, dtype=torch.float32)
-    drift = {}
-    for w in (0.0, 1.0):
-        cfg = load_config("cpu-quick", ["levels=8", "log2_table=14", "init_geometry_steps=60", "steps=20",
-                                        "target_samples=16384", "occ_resolution=32",
-                                        f"prior_weight={w}", "learn_illum=false", "log_every=1000",
-                                        "save_every=100000"])
-        tr = Trainer(s, cfg, tmp_path / f"r{w}", "cpu")
-        tr.log_ir.data.fill_(np.log(4.0))  # a pattern 4x too bright pulls the surface off the code
-        tr.fit(final_save=False)
-        assert (tr.prior is None) == (w == 0)
-        with torch.no_grad():
-            drift[w] = float(tr.field.sdf(P).abs().mean())
-    assert drift[1.0] < 0.8 * drift[0.0], drift  # seen: 0.2-0.65x
+    ratios = []
+    for seed in (0, 1, 2):
+        s = synthesize(tmp_path / f"g{seed}", shape="toy", views=1, size=(48, 48), pattern="graycode",
+                       seed=seed, progress=False, contact_sheet=False)
+        dec = decoded_points(s, [list(range(20))])
+        b = s.bounds
+        P = torch.tensor((dec["points"] - b.center) / b.radius, dtype=torch.float32)
+        drift = {}
+        for w in (0.0, 1.0):
+            cfg = load_config("cpu-quick", ["levels=8", "log2_table=14", "init_geometry_steps=60", "steps=20",
+                                            "target_samples=16384", "occ_resolution=32",
+                                            f"prior_weight={w}", "learn_illum=false", "log_every=1000",
+                                            "save_every=100000"])
+            tr = Trainer(s, cfg, tmp_path / f"r{seed}_{w}", "cpu")
+            tr.log_ir.data.fill_(np.log(4.0))  # a pattern 4x too bright pulls the surface off the code
+            tr.fit(final_save=False)
+            assert (tr.prior is None) == (w == 0)
+            with torch.no_grad():
+                drift[w] = float(tr.field.sdf(P).abs().mean())
+        ratios.append(drift[1.0] / drift[0.0])
+    assert float(np.median(ratios)) < 0.8, ratios  # seen: 0.55, 1.22, 0.29
 
 
 def test_prior_weight_is_validated():
