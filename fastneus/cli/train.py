@@ -70,17 +70,24 @@ def _run(args, tag: str, default_preset: str, oneshot_frame: int | None = None) 
     return 0
 
 
-def _common(p: argparse.ArgumentParser) -> None:
-    p.add_argument("scene", help="scene folder: fastneus (scene.json), ActiveNeuS or NeuS (cameras_sphere.npz), NeRF / instant-ngp / nerfstudio (transforms.json); the format is detected")
+def add_config_args(p: argparse.ArgumentParser) -> None:
+    """Add the options that choose a training run's config and machine: ``--config``, ``--device``,
+    ``--threads`` (shared by ``train``, ``oneshot`` and ``batch``; the key=value overrides are added
+    by each verb, as its positional arguments differ)."""
     p.add_argument("--config", help="preset name (fewview, oneshot, cpu-quick, passive, paper) or YAML file "
                                     "(default: fewview on cuda, cpu-quick on cpu)")
+    add_device_arg(p)
+    add_threads_arg(p)
+
+
+def _common(p: argparse.ArgumentParser) -> None:
+    p.add_argument("scene", help="scene folder: fastneus (scene.json), ActiveNeuS or NeuS (cameras_sphere.npz), NeRF / instant-ngp / nerfstudio (transforms.json); the format is detected")
     p.add_argument("--out", help="run folder (default runs/<scene>-<verb>)")
     p.add_argument("--resume", action="store_true", help="continue from the run folder's checkpoint "
                                                          "(also after Ctrl-C, which saves one)")
     p.add_argument("--overwrite", action="store_true", help="replace a run already in the run folder "
                                                             "(refused otherwise)")
-    add_device_arg(p)
-    add_threads_arg(p)
+    add_config_args(p)
     p.add_argument("overrides", nargs="*", metavar="key=value", help="config overrides, e.g. steps=2000 lr=0.005")
 
 
