@@ -13,7 +13,9 @@ hang (:data:`HANG_S`), never a pickle run.
 
 Targets: ``scene`` (scene.json), ``nerf`` (transforms.json), ``activeneus`` and ``neus``
 (cameras_sphere.npz), ``opencv`` (calibration YAML/XML through the import-calib builder),
-``colmap`` (cameras.txt / images.txt / points3D.txt through the same builder), ``config``
+``colmap`` (cameras.txt / images.txt / points3D.txt through the same builder), ``colmap_bin``
+(cameras.bin / images.bin / points3D.bin: counts, ids, poses and names overwritten with odd values,
+truncation, flipped bytes), ``config``
 (a YAML config file) and ``overrides`` (``key=value`` strings).
 """
 from __future__ import annotations
@@ -24,6 +26,7 @@ import json
 import math
 import shutil
 import signal
+import struct
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -33,7 +36,7 @@ import numpy as np
 from hypothesis import strategies as st
 
 HANG_S = 20.0  # one example past this is a hang (the hypothesis deadline catches slow ones far earlier)
-TARGETS = ("scene", "nerf", "activeneus", "neus", "opencv", "colmap", "config", "overrides")
+TARGETS = ("scene", "nerf", "activeneus", "neus", "opencv", "colmap", "colmap_bin", "config", "overrides")
 
 
 # --------------------------------------------------------------------------- payload
@@ -536,6 +539,117 @@ def points3d_text(draw) -> tuple[bytes, str]:
     return "\n".join(pts).encode("utf-8", "surrogatepass"), f"points3D.txt: {n} points{' all equal' if same else ''}"
 
 
+# --------------------------------------------------------------------------- COLMAP binary
+# COLMAP's model ids (sensor/models.h), written out here so the writer does not lean on the reader's table
+COLMAP_MODEL_IDS = {"SIMPLE_PINHOLE": 0, "PINHOLE": 1, "SIMPLE_RADIAL": 2, "RADIAL": 3, "OPENCV": 4,
+                    "OPENCV_FISHEYE": 5, "FULL_OPENCV": 6, "FOV": 7, "SIMPLE_RADIAL_FISHEYE": 8, "RADIAL_FISHEYE": 9,
+                    "THIN_PRISM_FISHEYE": 10, "RAD_TAN_THIN_PRISM_FISHEYE": 11}
+
+
+class _Packer:
+    """Little-endian bytes with the offset, format and name of every field written (for mutations)."""
+
+    def __init__(self):
+        self.data, self.fields = bytearray(), []
+
+    def put(self, fmt: str, label: str, *values) -> None:
+        self.fields.append((len(self.data), fmt, label))
+        self.data += struct.pack("<" + fmt, *values)
+
+
+def colmap_binary(cameras, images, points=None) -> tuple[dict[str, bytes], dict[str, list]]:
+    """A COLMAP binary model as COLMAP writes it (``Reconstruction::Write*Binary``, little-endian).
+
+    Args:
+        cameras: [(camera_id, model_name, width, height, params)].
+        images: [(image_id, qvec (w, x, y, z), tvec, camera_id, name, points2d [(x, y, point3D_id)])].
+        points: [(point3D_id, xyz, rgb, error, track [(image_id, point2D_idx)])], or None for no points3D.bin.
+    Returns:
+        ({file name: bytes}, {file name: [(offset, struct format, label)]}).
+    """
+    out, fields = {}, {}
+    c = _Packer()
+    c.put("Q", "num_cameras", len(cameras))
+    for cid, model, w, h, params in cameras:
+        c.put("I", "camera_id", cid)
+        c.put("i", "model_id", COLMAP_MODEL_IDS[model])
+        c.put("Q", "width", w)
+        c.put("Q", "height", h)
+        for v in params:
+            c.put("d", "param", float(v))
+    im = _Packer()
+    im.put("Q", "num_reg_images", len(images))
+    for iid, q, t, cid, name, pts2d in images:
+        im.put("I", "image_id", iid)
+        for v in q:
+            im.put("d", "qvec", float(v))
+        for v in t:
+            im.put("d", "tvec", float(v))
+        im.put("I", "camera_id", cid)
+        im.fields.append((len(im.data), "name", "name"))
+        im.data += name.encode("utf-8") + b"\0"
+        im.put("Q", "num_points2D", len(pts2d))
+        for x, y, pid in pts2d:
+            im.put("ddq", "point2D", x, y, pid)
+    out["cameras.bin"], fields["cameras.bin"] = bytes(c.data), c.fields
+    out["images.bin"], fields["images.bin"] = bytes(im.data), im.fields
+    if points is not None:
+        pt = _Packer()
+        pt.put("Q", "num_points", len(points))
+        for pid, xyz, rgb, err, track in points:
+            pt.put("Q", "point3D_id", pid)
+            for v in xyz:
+                pt.put("d", "xyz", float(v))
+            pt.put("BBB", "rgb", *rgb)
+            pt.put("d", "error", err)
+            pt.put("Q", "track_length", len(track))
+            for a, b in track:
+                pt.put("II", "track", a, b)
+        out["points3D.bin"], fields["points3D.bin"] = bytes(pt.data), pt.fields
+    return out, fields
+
+
+ODD_FIELD = {"Q": [0, 1, 2, 3, 2 ** 31, 2 ** 32 + 1, 2 ** 61, 2 ** 63, 2 ** 64 - 1],
+             "I": [0, 1, 2 ** 31, 2 ** 32 - 1], "i": [-1, 12, 99, 100, -2 ** 31, 2 ** 31 - 1],
+             "d": WEIRD_FLOATS}
+
+
+@st.composite
+def colmap_bin_bytes(draw, files: dict[str, bytes], fields: dict[str, list]) -> tuple[str, bytes, str]:
+    """One file of a COLMAP binary model with a field overwritten by an odd value (a count, id,
+    model id, pose value, the name's terminator), a byte flipped or the file cut short."""
+    name = draw(st.sampled_from(sorted(files)))
+    data = bytearray(files[name])
+    op = draw(st.sampled_from(["field", "field", "field", "truncate", "flip", "append"]))
+    if op == "truncate":
+        i = draw(st.integers(0, max(0, len(data) - 1)))
+        return name, bytes(data[:i]), f"{name}: truncate at {i}"
+    if op == "flip":
+        i, b = draw(st.integers(0, len(data) - 1)), draw(st.integers(1, 255))
+        data[i] ^= b
+        return name, bytes(data), f"{name}: xor byte {i} with {b}"
+    if op == "append":
+        extra = draw(st.sampled_from([b"\0", b"\xff" * 8, b"\0" * 43]))
+        return name, bytes(data) + extra, f"{name}: append {len(extra)} bytes"
+    off, fmt, label = draw(st.sampled_from(fields[name]))
+    if fmt == "name":
+        end = data.index(b"\0", off)
+        new = draw(st.sampled_from([b"", b"\xff\xfe", b"x" * 5000, "é/../x.png".encode(), b"001.png"]))
+        keep_nul = draw(st.booleans())
+        data[off:end + 1] = new + (b"\0" if keep_nul else b"")
+        return name, bytes(data), f"{name}: name at {off} -> {new[:20]!r}{'' if keep_nul else ' without NUL'}"
+    f0 = fmt[0]
+    v = draw(st.sampled_from(ODD_FIELD.get(f0, [0, 255])) if f0 in ODD_FIELD else st.integers(0, 255))
+    if f0 in "Ii" or f0 == "Q":
+        vals = [v] + [0] * (len(fmt) - 1)
+    elif f0 == "d":
+        vals = [v] + [0.0] * (len(fmt) - 1) if fmt != "ddq" else [v, 0.0, -1]
+    else:
+        vals = [v] * len(fmt)
+    struct.pack_into("<" + fmt, data, off, *vals)
+    return name, bytes(data), f"{name}: {label} at {off} -> {v!r}"
+
+
 # --------------------------------------------------------------------------- config
 YAML_SNIPPETS = ["!!python/object/apply:fuzz_strategies._touch ['{marker}']", "1: 2", "? [1, 2]\n: 3",
                  "steps: &a [*a]", "steps: 0x10", "steps: 1_000", "steps: 1e400", "lr: .nan", "lr: -.inf",
@@ -643,6 +757,20 @@ def build_bases(root: Path, scene_dir: Path) -> dict[str, Path]:
         x, y, z, w = Rotation.from_matrix(w2c[:3, :3]).as_quat()
         lines += [f"{i + 1} {w} {x} {y} {z} {' '.join(map(str, w2c[:3, 3]))} 1 {i:03d}.png", ""]
     (b["colmap"] / "images.txt").write_text("\n".join(lines) + "\n")
+
+    # the same model in COLMAP's binary layout, with a few 2D points and a points3D.bin track to skip
+    b["colmap_bin"] = root / "colmap_bin"
+    b["colmap_bin"].mkdir()
+    ims = []
+    for i in range(len(scene.frames)):
+        w2c = scene.world_to_cam(i)
+        x, y, z, w = Rotation.from_matrix(w2c[:3, :3]).as_quat()
+        ims.append((i + 1, (w, x, y, z), w2c[:3, 3], 1, f"{i:03d}.png", [(1.5, 2.5, -1), (3.0, 4.0, 1)]))
+    pts = [(j + 1, (0.01 * j, 0.0, -0.01 * j), (128, 128, 128), 0.5, [(1, 0), (2, 1)]) for j in range(12)]
+    files, fields = colmap_binary([(1, "PINHOLE", 24, 24, [K[0, 0], K[1, 1], K[0, 2], K[1, 2]])], ims, pts)
+    for n, data in files.items():
+        (b["colmap_bin"] / n).write_bytes(data)
+    (root / "colmap_bin_fields.json").write_text(json.dumps(fields))  # where each field lies, for mutations
     return b
 
 
@@ -686,7 +814,8 @@ def hang_guard(seconds: float = HANG_S):
 
 # the files a target's cases replace, restored from the base before each case
 BASE_FILES = {"scene": ["scene.json"], "nerf": ["transforms.json"], "activeneus": ["cameras_sphere.npz"],
-              "neus": ["cameras_sphere.npz"], "colmap": ["cameras.txt", "images.txt"]}
+              "neus": ["cameras_sphere.npz"], "colmap": ["cameras.txt", "images.txt"],
+              "colmap_bin": ["cameras.bin", "images.bin", "points3D.bin"]}
 
 
 class Fuzz:
@@ -707,7 +836,7 @@ class Fuzz:
         self.b, self.work = bases, Path(work)
         self.work.mkdir(parents=True, exist_ok=True)
         self.marker = self.work / "UNPICKLED"
-        for kind in ("scene", "nerf", "activeneus", "neus", "colmap"):
+        for kind in ("scene", "nerf", "activeneus", "neus", "colmap", "colmap_bin"):
             if not (self.work / kind).exists():
                 shutil.copytree(bases[kind], self.work / kind)
         self.scene_json = json.loads((bases["scene"] / "scene.json").read_text())
@@ -719,6 +848,8 @@ class Fuzz:
         with np.load(bases["calib"].parent / "calib_arrays.npz") as z:
             self.calib_model = calib_model({k: z[k] for k in z.files})
         self.colmap_files = {n: (bases["colmap"] / n).read_text() for n in ("cameras.txt", "images.txt")}
+        self.colmap_bin = {n: (bases["colmap_bin"] / n).read_bytes() for n in BASE_FILES["colmap_bin"]}
+        self.colmap_bin_fields = json.loads((bases["colmap_bin"].parent / "colmap_bin_fields.json").read_text())
         self.config = yaml.safe_load((resources.files("fastneus.configs") / "cpu-quick.yaml").read_text())
         self.config_keys = [f.name for f in fields(Config)]
 
@@ -740,6 +871,9 @@ class Fuzz:
                 lambda n: (points3d_text() if n == "points3D.txt" else colmap_text(self.colmap_files[n])).map(
                     lambda x: Case("colmap", {n: x[0]}, what=f"{n}: {x[1]}")))
             return one
+        if target == "colmap_bin":
+            return colmap_bin_bytes(self.colmap_bin, self.colmap_bin_fields).map(
+                lambda x: Case("colmap_bin", {x[0]: x[1]}, what=x[2]))
         if target == "config":
             return config_bytes(self.config, m).map(lambda x: Case("config", {"config.yaml": x[0]}, what=x[1]))
         if target == "overrides":
@@ -773,14 +907,14 @@ class Fuzz:
             from fastneus.formats.detect import load_scene
 
             return load_scene(self.folder(t))
-        if t in ("opencv", "colmap"):
+        if t in ("opencv", "colmap", "colmap_bin"):
             from fastneus.formats.opencv_calib import make_scene_from_calibration
 
             out = self.work / "out"
             shutil.rmtree(out, ignore_errors=True)
             images = sorted(self.b["images"].iterdir())
             calib = files[0] if t == "opencv" else self.b["calib"]
-            poses = self.b["poses"] if t == "opencv" else self.folder("colmap")
+            poses = self.b["poses"] if t == "opencv" else self.folder(t)
             return make_scene_from_calibration(calib, images, [self.b["pattern"]], poses, out, units="m")
         from fastneus.config import load_config
 
@@ -791,8 +925,9 @@ class Fuzz:
     def inputs(self, case: Case, files: list[Path]) -> list[Path]:
         """Every path an error may rightly name for this case (the files and folders given)."""
         t = case.target
-        if t in ("scene", "nerf", "activeneus", "neus", "colmap"):
-            return [self.folder(t)] + ([self.b["calib"], self.b["images"], self.b["pattern"]] if t == "colmap" else [])
+        if t in ("scene", "nerf", "activeneus", "neus", "colmap", "colmap_bin"):
+            colmap = t in ("colmap", "colmap_bin")
+            return [self.folder(t)] + ([self.b["calib"], self.b["images"], self.b["pattern"]] if colmap else [])
         if t == "opencv":
             return files + [self.b["images"], self.b["pattern"], self.b["poses"]]
         return files

@@ -20,9 +20,9 @@ import fuzz_strategies as fz
 from fastneus.cli import main
 from fastneus.errors import FastneusError
 
-# examples per target: ~480 in all, about 15 s on 2 cores
-EXAMPLES = {"scene": 70, "nerf": 60, "activeneus": 70, "neus": 50, "opencv": 70, "colmap": 60, "config": 50,
-            "overrides": 50}
+# examples per target: ~540 in all, about 17 s on 2 cores
+EXAMPLES = {"scene": 70, "nerf": 60, "activeneus": 70, "neus": 50, "opencv": 70, "colmap": 60, "colmap_bin": 60,
+            "config": 50, "overrides": 50}
 FUZZ = settings(deadline=2000, derandomize=True, database=None, print_blob=True,
                 suppress_health_check=list(HealthCheck))
 
@@ -31,7 +31,7 @@ FUZZ = settings(deadline=2000, derandomize=True, database=None, print_blob=True,
 def fuzz(small_scene, tmp_path_factory):
     root = tmp_path_factory.mktemp("fuzz")
     f = fz.Fuzz(fz.build_bases(root / "bases", small_scene), root / "work")
-    for t in ("scene", "nerf", "activeneus", "colmap"):  # warm imports: not the first example's deadline
+    for t in ("scene", "nerf", "activeneus", "colmap", "colmap_bin"):  # warm imports: not the first example's deadline
         fz.check_case(f, fz.Case(t, {}))
     fz.check_case(f, fz.Case("opencv", {"calib.yml": f.b["calib"].read_bytes()}))
     return f
@@ -51,14 +51,14 @@ def test_fuzz_parser(fuzz, target):
 
 def test_fuzz_bases_load(fuzz):
     """Unmutated, every base loads (else the fuzz would only test the first check)."""
-    for t in ("scene", "nerf", "activeneus", "neus", "colmap"):
+    for t in ("scene", "nerf", "activeneus", "neus", "colmap", "colmap_bin"):
         assert fz.check_case(fuzz, fz.Case(t, {})) == "ok", t
     calib = {"calib.yml": fuzz.b["calib"].read_bytes()}
     assert fz.check_case(fuzz, fz.Case("opencv", calib)) == "ok"
     assert fz.check_case(fuzz, fz.Case("overrides", items=["steps=3"])) == "ok"
 
 
-@pytest.mark.parametrize("target", ["scene", "nerf", "activeneus", "opencv", "colmap"])
+@pytest.mark.parametrize("target", ["scene", "nerf", "activeneus", "opencv", "colmap", "colmap_bin"])
 def test_fuzz_through_cli(fuzz, target):
     """A few mutated inputs through ``fastneus.cli.main``: exit 0, or 2 with exactly one stderr line."""
     out = fuzz.work / "cli-out"
@@ -70,8 +70,8 @@ def test_fuzz_through_cli(fuzz, target):
         note(f"mutation: {case.what}")
         files = fuzz.write(case)
         shutil.rmtree(out, ignore_errors=True)
-        if target in ("opencv", "colmap"):
-            where = ["--poses", str(b["poses"])] if target == "opencv" else ["--colmap", str(fuzz.folder("colmap"))]
+        if target in ("opencv", "colmap", "colmap_bin"):
+            where = ["--poses", str(b["poses"])] if target == "opencv" else ["--colmap", str(fuzz.folder(target))]
             argv = ["import-calib", str(files[0] if target == "opencv" else b["calib"]), "--images", str(b["images"]),
                     "--patterns", str(b["pattern"]), *where, "--units", "m", "--out", str(out)]
         else:

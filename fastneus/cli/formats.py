@@ -98,7 +98,8 @@ def register(subparsers) -> None:
                                           "line projectors lit in every photo")
     g = p.add_mutually_exclusive_group(required=True)
     g.add_argument("--poses", help="scene.json whose frames give cam_to_world in order")
-    g.add_argument("--colmap", help="COLMAP text model folder (cameras.txt, images.txt)")
+    g.add_argument("--colmap", help="COLMAP model folder, text (cameras.txt, images.txt) or binary "
+                   "(cameras.bin, images.bin), or a COLMAP project folder holding sparse/0")
     p.add_argument("--proj-size", help="projector WIDTHxHEIGHT when the file lacks it")
     p.add_argument("--units", default="mm", choices=("mm", "cm", "m"), help="units of the calibration's T")
     p.add_argument("--colmap-scale", type=float, default=1.0, help="metres per COLMAP unit (default 1)")

@@ -345,8 +345,9 @@ def make_scene_from_calibration(calib, images: Sequence, patterns: Sequence, pos
         calib: a calibration file path (or list of paths) or a ``(Camera, Projector)`` pair.
         images: N photo paths, frame order.
         patterns: the pattern shown in each frame: N paths, or 1 path shown in every frame.
-        poses: a ``scene.json`` (its frames' ``cam_to_world`` in order) or a COLMAP text
-            model folder (``cameras.txt``, ``images.txt``; images matched by file name).
+        poses: a ``scene.json`` (its frames' ``cam_to_world`` in order) or a COLMAP model folder,
+            text (``cameras.txt``, ``images.txt``) or binary (``cameras.bin``, ``images.bin``), or a
+            COLMAP project holding ``sparse/0``; images matched by file name.
         out: destination folder for the new scene.
         units: unit of the calibration's T (``mm`` or ``m``).
         proj_size: projector (width, height) when the calibration lacks it (default: the
@@ -355,7 +356,7 @@ def make_scene_from_calibration(calib, images: Sequence, patterns: Sequence, pos
             projector baseline is metric, so the two must agree; set it from a known
             distance (e.g. the camera travel) — 1.0 assumes the model is in metres.
         bounds: ``(center [3], radius)`` in metres; default from the poses file's bounds,
-            COLMAP's points3D.txt (median, 90th percentile distance x 1.2), or the
+            COLMAP's points3D.txt / .bin (median, 90th percentile distance x 1.2), or the
             point the cameras look at.
         lasers: laser-plane projectors (``fastneus.light.lasers.read_laser_planes``), lit in every
             frame; with lasers the calibration may hold the camera only and ``patterns``
@@ -398,25 +399,26 @@ def make_scene_from_calibration(calib, images: Sequence, patterns: Sequence, pos
     poses_path = Path(poses)
     center = radius = None
     if poses_path.is_dir() and not (poses_path / "scene.json").is_file():
-        from fastneus.formats.colmap import read_colmap_model
+        from fastneus.formats.colmap import model_files, read_colmap_model
 
         if colmap_scale <= 0:
             raise FastneusError("must be > 0", field="--colmap-scale")
+        model = model_files(poses_path)  # text or binary, here or in sparse/0: errors name its files
         _, cimgs, pts = read_colmap_model(poses_path)
         c2ws = []
         for p in images:
             im = cimgs.get(p.name)
             if im is None:
-                raise FastneusError(f"image {p.name!r} is not in the COLMAP model", file=poses_path / "images.txt")
+                raise FastneusError(f"image {p.name!r} is not in the COLMAP model", file=model.images)
             T = im.cam_to_world
             T[:3, 3] *= colmap_scale
             c2ws.append(T)
-        pose_of = [(poses_path / "images.txt", p.name) for p in images]  # (file, field) named in errors
+        pose_of = [(model.images, p.name) for p in images]  # (file, field) named in errors
         if pts is not None and len(pts) >= 10:
             pts = pts * colmap_scale
             center = np.median(pts, axis=0)
             radius = 1.2 * float(np.percentile(np.linalg.norm(pts - center, axis=1), 90))
-            bounds_of = (poses_path / "points3D.txt", None)
+            bounds_of = (model.points3D, None)
     else:
         c2ws, b = _poses_from_scene_json(poses_path, n)
         sj = poses_path / "scene.json" if poses_path.is_dir() else poses_path
