@@ -20,6 +20,7 @@ LAYERS = [
     {"fastneus.train", "fastneus.synth"},
     {"fastneus.export", "fastneus.eval", "fastneus.baselines"},
     {"fastneus.pipeline"},
+    {"fastneus.batch"},
     {"fastneus.cli", "fastneus.__main__"},
 ]
 

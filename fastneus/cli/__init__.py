@@ -65,7 +65,7 @@ class _Parser(argparse.ArgumentParser):
 # others: ``fastneus train`` must not pay for synth's torch + trimesh + scipy imports)
 VERBS = {
     "demo": "fastneus.cli.demo", "synth": "fastneus.cli.synth", "patterns": "fastneus.cli.patterns",
-    "train": "fastneus.cli.train", "oneshot": "fastneus.cli.train",
+    "train": "fastneus.cli.train", "oneshot": "fastneus.cli.train", "batch": "fastneus.cli.batch",
     "mesh": "fastneus.cli.export", "render": "fastneus.cli.export", "eval": "fastneus.cli.export",
     "convert": "fastneus.cli.formats", "import-calib": "fastneus.cli.formats",
     "config": "fastneus.cli.config",
