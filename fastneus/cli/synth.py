@@ -24,9 +24,10 @@ def register(subparsers) -> None:
     p.add_argument("--pattern", default="crosslaser", choices=pattern_kinds(), help="pattern kind (default crosslaser)")
     p.add_argument("--illum", default="normal", choices=list(ILLUMS), help="normal (ambient 1) or dark (0.1)")
     p.add_argument("--ambient", type=float, default=None, help="override the ambient level")
-    p.add_argument("--albedo", default="procedural", choices=ALBEDOS)
+    p.add_argument("--albedo", default="procedural", choices=ALBEDOS,
+                   help=f"surface colour: {', '.join(ALBEDOS)} (default procedural)")
     p.add_argument("--noise", type=float, default=0.005, help="Gaussian noise sigma (default 0.005)")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=int, default=0, help="random seed of the poses, patterns, albedo and noise (default 0)")
     p.add_argument("--proj-size", default="1024x768", help="projector size WxH (default 1024x768)")
     p.add_argument("--baselines", default=None,
                    help="projector x offsets on the rig in metres, comma-separated (default: -0.6,-0.2,0.2,0.6 "
@@ -37,7 +38,21 @@ def register(subparsers) -> None:
                    help="projectors are laser line projectors defined by light planes (the crosslaser lines)")
     p.add_argument("--projector-blur", type=float, default=0.0, metavar="SIGMA",
                    help="projector defocus: Gaussian sigma in projector pixels, 5x5 taps (default 0 = sharp)")
-    p.add_argument("--no-contact-sheet", action="store_true")
+    g = p.add_argument_group("realistic capture (applied to the linear render; ground truth stays linear)")
+    g.add_argument("--realistic", action="store_true",
+                   help="a real camera's mix: sRGB, +-25%% exposure, speckle, highlights, 0.7 px defocus, "
+                        "vignetting, read + shot noise, saturation (the options below override its parts)")
+    g.add_argument("--response", default=None, help="camera response of the photos: linear | srgb | gamma=G")
+    for name, what in (("exposure", "per-frame auto-exposure spread (0.25 = gains 0.8..1.25)"),
+                       ("speckle", "speckle contrast of the projected light (std/mean)"),
+                       ("specular", "Blinn-Phong highlight strength"), ("shininess", "Blinn-Phong exponent"),
+                       ("defocus", "camera defocus, Gaussian sigma in pixels"),
+                       ("vignetting", "relative fall-off at the image corner"),
+                       ("read-noise", "read-noise sigma (linear units)"),
+                       ("shot-noise", "shot-noise variance per unit signal")):
+        g.add_argument(f"--{name}", type=float, default=None, help=what)
+    p.add_argument("--no-contact-sheet", action="store_true",
+                   help="do not write contact_sheet.png (all views in one image)")
     p.add_argument("--threads", type=int, default=1, help="torch CPU threads while rendering (default 1)")
     add_device_arg(p)
     p.add_argument("--out", required=True, help="output folder")
@@ -59,6 +74,14 @@ def parse_baselines(text: str | None) -> tuple[float, ...] | None:
     return vals
 
 
+def capture_options(args) -> dict:
+    """The capture options given on the command line (``fastneus.synth.capture.Capture`` fields)."""
+    opts = {"response": args.response, "exposure": args.exposure, "speckle": args.speckle,
+            "specular": args.specular, "shininess": args.shininess, "blur": args.defocus,
+            "vignetting": args.vignetting, "read_noise": args.read_noise, "shot_noise": args.shot_noise}
+    return {k: v for k, v in opts.items() if v is not None}
+
+
 def _run(args) -> int:
     device = resolve_device(args.device)
     size = parse_size(args.size)
@@ -69,5 +92,6 @@ def _run(args) -> int:
                illum=args.illum, albedo=args.albedo, noise=args.noise, seed=args.seed, device=device,
                ambient=args.ambient, proj_size=psize, contact_sheet=not args.no_contact_sheet,
                threads=args.threads, baselines=parse_baselines(args.baselines), projector_blur=args.projector_blur,
-               laser_planes=args.laser_planes, medium=args.medium)
+               laser_planes=args.laser_planes, medium=args.medium, realistic=args.realistic,
+               capture=capture_options(args))
     return 0

@@ -49,6 +49,7 @@ class Scene:
     units: str = "m"
     name: str = ""
     meta: dict = field(default_factory=dict)  # free-form provenance (e.g. how synth made it), kept on save
+    response: str | None = None  # the photos' camera response (linear | srgb | gamma=G); None = not stated
 
     # ------------------------------------------------------------------ loading
     @classmethod
@@ -239,8 +240,14 @@ class Scene:
             if check_files and not (root / gt_mesh).is_file():
                 raise field_error(f"file not found: {root / gt_mesh}", file, "gt.mesh")
         meta = as_dict(d.get("meta", {}) or {}, file, "meta")
+        response = d.get("response")
+        if response is not None:  # canonical spelling kept; training decodes the photos with it
+            from fastneus.data.response import parse_response
+
+            response = str(parse_response(response, file=file, field="response"))
         return cls(root=root, cameras=cameras, projectors=projectors, patterns=patterns, frames=frames,
-                   bounds=bounds, illumination=illum, gt_mesh=gt_mesh, units=units, name=name, meta=meta)
+                   bounds=bounds, illumination=illum, gt_mesh=gt_mesh, units=units, name=name, meta=meta,
+                   response=response)
 
     # ------------------------------------------------------------------ saving
     def to_dict(self, rel_to: str | os.PathLike | None = None) -> dict:
@@ -283,6 +290,7 @@ class Scene:
             "illumination": {"i_r": float(il.i_r), "i_b": float(il.i_b), "ambient": float(il.ambient),
                              "known": bool(il.known)},
             "gt": {"mesh": rp(self.gt_mesh)},
+            **({"response": self.response} if self.response is not None else {}),
             "meta": copy.deepcopy(self.meta),
         }
 

@@ -31,6 +31,7 @@ from fastneus.light.patterns import pattern_kinds, sequence_kinds
 from fastneus.light.patterns import make_pattern, write_png
 from fastneus.geometry.projection import Z_MIN, pixel_rays, project_points, refract_rays, sample_pattern
 from fastneus.synth.albedo import Albedo
+from fastneus.synth.capture import apply_speckle, blinn_phong, finish, frame_gains, make_capture
 from fastneus.synth.shapes import load_mesh, make_shape, normalise_mesh
 from fastneus.synth.water import WATER, WATER_PORT, Water, port_exit
 
@@ -134,7 +135,8 @@ def synthesize(out, shape: str | None = None, mesh=None, views: int = 20, size=(
                cam_distance: float = 4.0, focal: float | None = None, poses=None, normalise: bool = True,
                pattern_opts: dict | None = None, light_dir=(0.35, -0.4, 0.85), contact_sheet: bool = True,
                progress: bool = True, threads: int | None = 1, projector_blur: float = 0.0,
-               laser_planes: bool = False, medium: str = "air") -> Scene:
+               laser_planes: bool = False, medium: str = "air", realistic: bool = False,
+               capture: dict | None = None) -> Scene:
     """Render a synthetic structured-light scene into ``out`` and return it (loaded back).
 
     Args:
@@ -182,6 +184,11 @@ def synthesize(out, shape: str | None = None, mesh=None, views: int = 20, size=(
         threads: torch CPU threads while rendering (restored afterwards; None = leave as is).
             Default 1: the per-view tensors are ~1e5 elements, where intra-op threading
             gains little and costs up to 8x when the cores are shared (measured).
+        realistic: a real camera's effects (:data:`fastneus.synth.capture.REALISTIC`: sRGB response,
+            +-25% exposure, speckle, highlights, 0.7 px defocus, vignetting, read + shot noise,
+            saturation) applied to the linear render; ground truth stays linear.
+        capture: individual capture options (:class:`fastneus.synth.capture.Capture` fields), on
+            top of the realistic mix when ``realistic``; None / {} with ``realistic`` off = ideal.
 
     Returns:
         The written :class:`Scene` (loaded back, so it is validated).
@@ -208,7 +215,8 @@ def synthesize(out, shape: str | None = None, mesh=None, views: int = 20, size=(
 
 def _synthesize(out, shape, mesh, views, size, pattern, illum, albedo, noise, seed, device, ambient, i_r, i_b,
                 proj_size, proj_fov_deg, baselines, cam_distance, focal, poses, normalise, pattern_opts,
-                light_dir, contact_sheet, progress, projector_blur, laser_planes, medium) -> tuple:
+                light_dir, contact_sheet, progress, projector_blur, laser_planes, medium, realistic=False,
+                capture=None) -> tuple:
     """Render into the fresh folder ``out`` (the staging folder); returns (seconds, stats, faces) for the summary."""
     from fastneus.kernels.raycast import raycast_mesh
 
@@ -240,6 +248,7 @@ def _synthesize(out, shape, mesh, views, size, pattern, illum, albedo, noise, se
             raise FastneusError(f"expected a finite number{'' if lo is None else f' >= {lo:g}'}, got {v!r}",
                                 field=flag)
     taps = blur_kernel(projector_blur) if projector_blur > 0 else None
+    cap = make_capture(capture, realistic)  # None: the ideal capture (the linear model, quantised)
     if medium not in ("air", "water"):
         raise FastneusError(f"unknown medium {medium!r}; use air or water", field="--medium")
     wet = medium == "water"
@@ -330,6 +339,7 @@ def _synthesize(out, shape, mesh, views, size, pattern, illum, albedo, noise, se
         poses = orbit_poses(views, cam_distance, seed)
     poses = [np.asarray(p, dtype=np.float64) for p in poses]
     n_views, n_shots = len(poses), len(shots)
+    gains = frame_gains(n_views * n_shots, cap.exposure if cap else 0.0, seed)  # frame 0 = 1
 
     for d in _OUR_DIRS:
         (out / d).mkdir(exist_ok=True)
@@ -374,7 +384,7 @@ def _synthesize(out, shape, mesh, views, size, pattern, illum, albedo, noise, se
 
             # projector terms: Q per shot and projector, V per projector (shadow rays where lit)
             Q = [[None] * len(pids) for _ in range(n_shots)]
-            vis = []
+            vis, to_proj = [], []  # to_proj: [nv, 3] unit directions toward each projector (highlights)
             for k, p in enumerate(pids):
                 p2w = c2w @ projectors[p].proj_to_cam
                 w2p = np.linalg.inv(p2w)
@@ -404,6 +414,7 @@ def _synthesize(out, shape, mesh, views, size, pattern, illum, albedo, noise, se
                 to_c = C - P
                 dist = to_c.norm(dim=1)
                 dirp = to_c / dist[:, None]
+                to_proj.append(dirp)
                 facing = (nh * dirp).sum(1) > 0  # the lit side must face the projector
                 sel = (need & facing).nonzero().squeeze(1)
                 Vk = torch.zeros(P.shape[0], dtype=torch.float32, device=dev)
@@ -429,19 +440,37 @@ def _synthesize(out, shape, mesh, views, size, pattern, illum, albedo, noise, se
             depth_np = depth.view(H, W).cpu().numpy()
             np.save(out / "depth" / f"{vname}.npy", depth_np)
             stats["coverage"].append(nv / (H * W))
+            if cap is not None and cap.specular > 0:  # highlights: the ambient light's, each projector's lobe
+                lobe_amb = amb * cap.specular * blinn_phong(nh, -dh, light, cap.shininess)[:, None]
+                lobes = [cap.specular * blinn_phong(nh, -dh, to_proj[k], cap.shininess)[:, None]
+                         for k in range(len(pids))]
             for j, shot in enumerate(shots):
                 fi = len(frames)
                 c = D.clone()
+                lp = torch.zeros_like(D)  # the projected light alone (speckle multiplies it only)
                 lit = torch.zeros(nv, dtype=torch.bool, device=dev)
                 for k, p in enumerate(pids):
                     qv = Q[j][k] * vis[k][:, None]
-                    c = c + (i_r * D + i_b) * qv
+                    if cap is None:
+                        c = c + (i_r * D + i_b) * qv
+                    else:
+                        lp = lp + (i_r * D + i_b + (lobes[k] if cap.specular > 0 else 0.0)) * qv
                     lit |= qv.amax(dim=1) > 0
+                if cap is not None:
+                    c = c + apply_speckle(lp, cap.speckle, (seed, 7, fi)) + (lobe_amb if cap.specular > 0 else 0.0)
                 img = torch.zeros(H * W, 3, dtype=torch.uint8, device=dev)
-                if wet:
-                    img[:] = _quantise(water.background() + _noise((H * W, 3), noise, (seed, 3, fi), dev))
-                    c = water.seen(c)
-                img[hidx] = _quantise(c + _noise((nv, 3), noise, (seed, 2, fi), dev))
+                if cap is not None:  # the camera sees the whole linear image (blur crosses the silhouette)
+                    lin = torch.zeros(H * W, 3, dtype=torch.float32, device=dev)
+                    if wet:
+                        lin[:] = water.background() + _noise((H * W, 3), noise, (seed, 3, fi), dev)
+                        c = water.seen(c)
+                    lin[hidx] = c + _noise((nv, 3), noise, (seed, 2, fi), dev)
+                    img[:] = _quantise(finish(lin.view(H, W, 3), cap, gains[fi], (seed, 9, fi)).reshape(-1, 3))
+                else:
+                    if wet:
+                        img[:] = _quantise(water.background() + _noise((H * W, 3), noise, (seed, 3, fi), dev))
+                        c = water.seen(c)
+                    img[hidx] = _quantise(c + _noise((nv, 3), noise, (seed, 2, fi), dev))
                 img_np = img.view(H, W, 3).cpu().numpy()
                 write_png(out / "images" / f"{fi:03d}.png", img_np)
                 stats["lit"].append(float(lit.float().mean()) if nv else 0.0)
@@ -463,13 +492,14 @@ def _synthesize(out, shape, mesh, views, size, pattern, illum, albedo, noise, se
         projectors=projectors, patterns={q: Pattern(id=q, file=f"patterns/{q}.png") for q in pat_images},
         frames=frames, bounds=Bounds(center=centre.astype(np.float64), radius=1.1 * obj_radius),
         illumination=Illumination(i_r=i_r, i_b=i_b, ambient=amb, known=True), gt_mesh="gt_mesh.ply",
-        units="m", name=name,
+        units="m", name=name, response=cap.response if cap is not None else "linear",
         meta={"generator": GENERATOR, "source": src, "pattern": kind, "illum": illum, "albedo": albedo,
               "noise": noise, "seed": seed, "light_dir": list(map(float, light_dir)), "cam_distance": cam_distance,
               "baselines": list(map(float, baselines)), "projector_hfov_deg": proj_fov_deg,
               **({"projector_blur_sigma_px": float(projector_blur), "projector_blur_kernel": taps.tolist()}
                  if taps is not None else {}),
-              **({"medium": dict(WATER, kind="water")} if wet else {})})
+              **({"medium": dict(WATER, kind="water")} if wet else {}),
+              **({"capture": cap.to_meta(gains)} if cap is not None else {})})
     if contact_sheet and sheet_rows:
         write_png(out / "contact_sheet.png", _contact_sheet(sheet_rows))
     scene.save(out)
@@ -521,5 +551,9 @@ def _summary(scene: Scene, out: Path, seconds: float, stats, n_faces: int) -> No
     t.add_row("illumination", f"{scene.meta['illum']}: ambient {il.ambient}, i_r {il.i_r}, i_b {il.i_b}")
     t.add_row("object pixels", f"{100 * np.mean(stats['coverage']):.1f}% of the image, "
                                f"{100 * np.mean(stats['lit']):.1f}% of them pattern-lit")
+    if "capture" in scene.meta:
+        cp = scene.meta["capture"]
+        t.add_row("capture", ", ".join(f"{k} {v}" for k, v in cp.items() if k != "gains" and v) +
+                  f"; gains {min(cp['gains']):.2f}..{max(cp['gains']):.2f}")
     t.add_row("time", f"{seconds:.1f} s")
     Console().print(t)

@@ -11,7 +11,7 @@ import trimesh
 
 from fastneus.errors import FastneusError
 
-SHAPES = ("sphere", "torus", "toy", "rock")
+SHAPES = ("sphere", "torus", "toy", "rock", "ant", "airplane", "hexnut")
 
 
 def _coloured(m: trimesh.Trimesh, rgb) -> trimesh.Trimesh:
@@ -66,6 +66,71 @@ def rock(seed: int = 3) -> trimesh.Trimesh:
     return _coloured(m, (150, 140, 125))
 
 
+def _segment(a, b, radius: float, sections: int = 16) -> trimesh.Trimesh:
+    """A closed cylinder from point ``a`` to point ``b``."""
+    return trimesh.creation.cylinder(radius=radius, segment=np.array([a, b], dtype=np.float64), sections=sections)
+
+
+def ant() -> trimesh.Trimesh:
+    """An ant-like shape: head, thorax and abdomen (ellipsoids) and six thin two-segment legs
+    (4 cm thick for a 2.6 m body: about a pixel in an 800-px view) that stop short of the body."""
+    def ellipsoid(c, r):
+        m = trimesh.creation.icosphere(subdivisions=3, radius=1.0)
+        m.vertices = m.vertices * np.asarray(r) + np.asarray(c)
+        return m
+
+    parts = [ellipsoid((-0.95, 0, 0.35), (0.25, 0.2, 0.2)), ellipsoid((-0.3, 0, 0.35), (0.3, 0.16, 0.16)),
+             ellipsoid((0.55, 0, 0.4), (0.5, 0.32, 0.3))]
+    for x in (-0.45, -0.3, -0.15):
+        for side in (-1, 1):
+            hip = np.array([x, side * 0.2, 0.33])      # just outside the thorax (no interpenetration)
+            knee = np.array([x + 2.2 * (x + 0.3), side * 0.6, 0.55])
+            foot = np.array([x + 4.0 * (x + 0.3), side * 0.95, -0.1])
+            parts += [_segment(hip, knee, 0.02), _segment(knee + (knee - hip) / np.linalg.norm(knee - hip) * 0.045,
+                                                          foot, 0.02)]
+    return _coloured(trimesh.util.concatenate(parts), (110, 70, 45))
+
+
+def airplane() -> trimesh.Trimesh:
+    """An airplane-like shape: a capsule fuselage, two thin wings (3 cm), a tailplane and a fin,
+    each a separate closed part beside the fuselage."""
+    fus = trimesh.creation.capsule(height=2.0, radius=0.16, count=[24, 24])
+    _place(fus, (0, 0, 0), rotate_deg=90, axis=(0, 1, 0))  # along x
+    parts = [fus]
+    for side in (-1, 1):
+        wing = trimesh.creation.box((0.45, 1.1, 0.03))
+        _place(wing, (0.05, side * (0.17 + 0.56), 0.0), rotate_deg=side * 4, axis=(1, 0, 0))
+        tail = trimesh.creation.box((0.22, 0.35, 0.025))
+        _place(tail, (-0.95, side * (0.17 + 0.175), 0.05))
+        parts += [wing, tail]
+    fin = trimesh.creation.box((0.3, 0.025, 0.35))
+    _place(fin, (-0.95, 0.0, 0.17 + 0.175))
+    return _coloured(trimesh.util.concatenate(parts), (200, 200, 210))
+
+
+def hexnut(outer: float = 1.0, hole: float = 0.5, height: float = 0.6, n: int = 96) -> trimesh.Trimesh:
+    """A hexagonal nut: a hexagonal prism (circumradius ``outer``) with a round hole through it.
+
+    Both walls are sampled at the same ``n`` angles (a multiple of 6, so the hexagon's corners
+    are vertices) and joined by annular caps: one closed, watertight surface of genus 1.
+    """
+    th = np.arange(n) * 2 * np.pi / n
+    apothem = outer * np.cos(np.pi / 6)
+    r_hex = apothem / np.cos((th % (np.pi / 3)) - np.pi / 6)
+    ring = lambda r, z: np.c_[r * np.cos(th), r * np.sin(th), np.full(n, z)]  # noqa: E731
+    v = np.concatenate([ring(r_hex, height / 2), ring(np.full(n, hole), height / 2),
+                        ring(r_hex, -height / 2), ring(np.full(n, hole), -height / 2)])
+    to, ti, bo, bi = (np.arange(n) + k * n for k in range(4))
+    nx = lambda a: np.roll(a, -1)  # noqa: E731
+    f = []
+    for a, b, c, d in ((to, nx(to), nx(ti), ti), (bo, bi, nx(bi), nx(bo)),   # caps (top up, bottom down)
+                       (bo, nx(bo), nx(to), to), (bi, ti, nx(ti), nx(bi))):  # outer wall, hole wall
+        f += [np.c_[a, b, c], np.c_[a, c, d]]
+    m = trimesh.Trimesh(v, np.concatenate(f), process=True)
+    trimesh.repair.fix_normals(m)
+    return _place(_coloured(m, (170, 165, 150)), rotate_deg=35)
+
+
 def make_shape(name: str) -> trimesh.Trimesh:
     """A built-in shape (before normalisation) with per-vertex colours."""
     if name == "sphere":
@@ -79,6 +144,12 @@ def make_shape(name: str) -> trimesh.Trimesh:
         return trimesh.util.concatenate(parts)
     if name == "rock":
         return rock()
+    if name == "ant":
+        return ant()
+    if name == "airplane":
+        return airplane()
+    if name == "hexnut":
+        return hexnut()
     raise FastneusError(f"unknown shape {name!r}; use one of {', '.join(SHAPES)}", field="--shape")
 
 

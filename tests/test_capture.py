@@ -1,0 +1,144 @@
+"""Realistic captures in synth (fastneus.synth.capture): each effect does what it says, measured
+on a small render against the ideal capture of the same scene and seed; ground truth stays linear."""
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from fastneus.data.response import encode
+from fastneus.errors import FastneusError
+from fastneus.synth.capture import (REALISTIC, Capture, apply_speckle, blinn_phong, finish, frame_gains,
+                                    make_capture, vignette)
+from fastneus.synth.render import synthesize
+from fastneus.synth.shapes import make_shape
+
+SMALL = dict(shape="sphere", views=2, size=(64, 64), pattern="crosslaser", seed=0, device="cpu", noise=0.0,
+             proj_size=(128, 96), progress=False, contact_sheet=False)
+
+
+def _render(root, name, capture=None, realistic=False):
+    scene = synthesize(root / name, capture=capture, realistic=realistic, **SMALL)
+    imgs = np.stack([scene.image(i) for i in range(len(scene.frames))]).astype(np.float64) / 255.0
+    masks = np.stack([scene.mask(i) > 0.5 for i in range(len(scene.frames))])
+    return scene, imgs, masks
+
+
+@pytest.fixture(scope="module")
+def ideal(tmp_path_factory):
+    return _render(tmp_path_factory.mktemp("cap"), "ideal")
+
+
+def test_ideal_states_linear_and_has_no_capture(ideal):
+    scene = ideal[0]
+    assert scene.response == "linear" and "capture" not in scene.meta
+    assert json.loads((scene.root / "scene.json").read_text())["response"] == "linear"
+
+
+def test_speckle_multiplies_the_projected_light_only(tmp_path, ideal):
+    scene, ref, masks = ideal
+    _, img, _ = _render(tmp_path, "speckle", {"speckle": 0.3})
+    clean = np.stack([scene.gt_clean(i) for i in range(len(scene.frames))]) / 255.0
+    unlit = masks & (np.abs(ref - clean).max(-1) == 0)  # no pattern light (the pattern-free image)
+    lit = masks & (np.abs(ref - clean).max(-1) > 0.1)
+    assert unlit.sum() > 50 and lit.sum() > 50
+    np.testing.assert_array_equal(img[unlit], ref[unlit])  # ambient light untouched
+    ratio = (img - clean)[lit].sum(-1) / (ref - clean)[lit].sum(-1)  # the projected light's speckle factor
+    assert abs(np.median(ratio) - 1) < 0.1 and 0.2 < ratio.std() < 0.4
+    q = torch.ones(20000, 3)
+    s = apply_speckle(q, 0.3, (0, 1))
+    assert abs(float(s.mean()) - 1) < 0.02 and abs(float(s[:, 0].std()) - 0.3) < 0.02
+    assert torch.equal(s[:, 0], s[:, 1])  # one speckle grain value for the three channels
+
+
+def test_specular_adds_highlights(tmp_path, ideal):
+    _, ref, masks = ideal
+    _, img, _ = _render(tmp_path, "spec", {"specular": 0.5, "shininess": 20})
+    d = (img - ref)[masks]
+    assert d.min() >= -1.5 / 255  # only adds light (rounding aside)
+    assert d.max() > 0.2  # a real highlight somewhere on the sphere
+    n = torch.tensor([[0.0, 0.0, 1.0]] * 2)
+    lobe = blinn_phong(n, torch.tensor([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0]]), torch.tensor([0.0, 0.0, 1.0]), 40.0)
+    assert float(lobe[0]) == pytest.approx(1.0) and float(lobe[1]) < 0.01
+
+
+def test_exposure_gains_scale_frames(tmp_path, ideal):
+    _, ref, masks = ideal
+    scene, img, _ = _render(tmp_path, "exp", {"exposure": 0.25})
+    gains = scene.meta["capture"]["gains"]
+    assert gains[0] == 1.0 and all(0.8 - 1e-6 <= g <= 1.25 + 1e-6 for g in gains)
+    for f, g in enumerate(gains):
+        sel = masks[f] & (ref[f].max(-1) > 0.1) & (ref[f].max(-1) * g < 0.95)
+        ratio = np.median(img[f][sel].sum(-1) / ref[f][sel].sum(-1))
+        assert ratio == pytest.approx(g, abs=0.02)
+    g = frame_gains(200, 0.25, 3)
+    assert g[0] == 1.0 and g.min() >= 0.8 - 1e-9 and g.max() <= 1.25 + 1e-9 and g.std() > 0.05
+
+
+def test_blur_smooths_and_keeps_light(tmp_path, ideal):
+    _, ref, _ = ideal
+    _, img, _ = _render(tmp_path, "blur", {"blur": 0.7})
+    energy = lambda x: (np.diff(x, axis=2) ** 2).mean()  # noqa: E731 (high-frequency energy)
+    assert energy(img) < 0.7 * energy(ref)
+    assert img.sum() == pytest.approx(ref.sum(), rel=0.02)
+
+
+def test_vignetting_darkens_corners():
+    v = vignette(64, 64, 0.25, "cpu")[..., 0]
+    assert float(v[32, 32]) > 0.999 and float(v[0, 0]) == pytest.approx(0.75, abs=0.01)
+    img = torch.full((64, 64, 3), 0.5)
+    out = finish(img, Capture(vignetting=0.25), 1.0, (0,))
+    assert float(out[0, 0, 0]) < float(out[32, 32, 0]) - 0.1
+
+
+def test_noise_read_and_shot():
+    cap = Capture(read_noise=0.01, shot_noise=0.004)
+    for level in (0.2, 0.6):
+        out = finish(torch.full((200, 200, 3), level), cap, 1.0, (1,))
+        assert float(out.std()) == pytest.approx((0.01 ** 2 + 0.004 * level) ** 0.5, rel=0.05)
+
+
+def test_saturation_and_response():
+    img = torch.tensor([[[0.2, 0.9, 3.0]]])
+    lin = finish(img, Capture(), 1.2, (0,))
+    assert lin.flatten().tolist() == pytest.approx([0.24, 1.0, 1.0])  # gain, then clipped at 1
+    srgb = finish(img, Capture(response="srgb"), 1.0, (0,))
+    assert float(srgb[0, 0, 0]) == pytest.approx(float(encode(torch.tensor(0.2), "srgb")))
+    assert float(srgb[0, 0, 0]) == pytest.approx(0.4845, abs=1e-3)  # sRGB of 0.2
+
+
+def test_realistic_scene_states_response_and_keeps_linear_truth(tmp_path, ideal):
+    scene, img, masks = _render(tmp_path, "real", realistic=True)
+    assert scene.response == "srgb"
+    assert scene.illumination.i_r == ideal[0].illumination.i_r and scene.illumination.known
+    cap = scene.meta["capture"]
+    assert {k: cap[k] for k in REALISTIC} == REALISTIC and len(cap["gains"]) == len(scene.frames)
+    # the photos are sRGB-encoded: object pixels are much brighter than the linear ones
+    assert img[masks].mean() > 1.3 * ideal[1][masks].mean()
+    # clean (ground truth, pattern-free) images stay the linear ideal ones
+    np.testing.assert_array_equal(scene.gt_clean(0), ideal[0].gt_clean(0))
+
+
+@pytest.mark.parametrize("opts, field", [({"speckle": -0.1}, "capture.speckle"), ({"blur": float("nan")}, "capture.blur"),
+                                         ({"response": "gama=2"}, "capture.response"),
+                                         ({"sparkle": 1}, "capture.sparkle")])
+def test_bad_capture_options(opts, field):
+    with pytest.raises(FastneusError) as e:
+        make_capture(opts)
+    assert e.value.field == field and "\n" not in str(e.value)
+
+
+def test_make_capture_defaults():
+    assert make_capture(None) is None and make_capture({}) is None
+    c = make_capture({"speckle": 0.5}, realistic=True)
+    assert c.speckle == 0.5 and c.response == "srgb" and c.blur == REALISTIC["blur"]
+
+
+@pytest.mark.parametrize("name", ["ant", "airplane", "hexnut"])
+def test_thin_shapes_are_closed(name):
+    m = make_shape(name)
+    assert m.is_watertight and len(m.faces) > 100
+    if name == "hexnut":  # one part with a hole through it: genus 1
+        assert m.euler_number == 0 and m.is_volume
