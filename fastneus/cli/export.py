@@ -8,6 +8,9 @@ from fastneus.errors import FastneusError
 from fastneus.io import check_out_dir, confined, json_text
 from fastneus.pipeline import open_run
 
+RUN_HELP = "run folder of a trained run (holds checkpoint.pt and config.yaml)"
+SCENE_HELP = "scene folder (default: the one the run was trained on, from run.json)"
+
 
 def _check_frames(frames: list[int], scene) -> list[int]:
     for i in frames:
@@ -86,26 +89,33 @@ def _eval(args) -> int:
 
 
 def register(sub) -> None:
-    p = sub.add_parser("mesh", help="extract the mesh of a run (marching cubes, world units)")
-    p.add_argument("run")
+    p = sub.add_parser("mesh", help="extract the mesh of a run (marching cubes, world units)",
+                       description="Extract the surface of a trained run with marching cubes, in world units, "
+                                   "with vertex normals and the learned colours.")
+    p.add_argument("run", help=RUN_HELP)
     p.add_argument("--resolution", type=int, default=None, help="marching-cubes grid (default: the run's export.mesh_resolution)")
     p.add_argument("--out", help="PLY, OBJ or GLB path (default RUN/mesh.ply; vertex normals and colours included)")
-    p.add_argument("--scene", help="scene folder (default: the one the run was trained on)")
+    p.add_argument("--scene", help=SCENE_HELP)
     add_device_arg(p)
     p.set_defaults(func=_mesh)
 
-    r = sub.add_parser("render", help="render frames: with pattern, texture only, depth, normals")
-    r.add_argument("run")
+    r = sub.add_parser("render", help="render frames: with pattern, texture only, depth, normals",
+                       description="Render frames of the scene with a trained run: the image with the "
+                                   "pattern, the pattern-free texture, depth and normals, as PNGs.")
+    r.add_argument("run", help=RUN_HELP)
     r.add_argument("--frame", type=int, action="append", help="frame index (repeatable; default 0)")
     r.add_argument("--out", help="output folder (default RUN/renders)")
-    r.add_argument("--scene")
+    r.add_argument("--scene", help=SCENE_HELP)
     add_device_arg(r)
     r.set_defaults(func=_render)
 
-    e = sub.add_parser("eval", help="metrics (Chamfer, F-score, PSNR, depth, illumination) and report.html")
-    e.add_argument("run")
+    e = sub.add_parser("eval", help="metrics (Chamfer, F-score, PSNR, depth, illumination) and report.html",
+                       description="Evaluate a trained run again: mesh, renders, metrics.json (Chamfer, F-score, "
+                                   "PSNR, depth and illumination errors against the scene's ground truth) "
+                                   "and report.html.")
+    e.add_argument("run", help=RUN_HELP)
     e.add_argument("--frame", type=int, action="append", help="frames to render for image metrics")
     e.add_argument("--resolution", type=int, default=None, help="mesh resolution (default: the run's)")
-    e.add_argument("--scene")
+    e.add_argument("--scene", help=SCENE_HELP)
     add_device_arg(e)
     e.set_defaults(func=_eval)

@@ -7,7 +7,21 @@ from pathlib import Path
 
 from fastneus.errors import FastneusError
 from fastneus.formats.detect import load_scene
-from fastneus.formats.registry import get_format, writable
+from fastneus.formats.registry import formats, get_format, writable
+
+
+def scene_help(lead: str = "scene folder") -> str:
+    """Help text for a scene argument naming every registered scene format (the formats
+    registry, :mod:`fastneus.formats.registry`): a format registered later shows up in
+    ``--help`` without touching the CLI.
+
+    Args:
+        lead: what the argument is, e.g. ``"scene folder"``.
+    Returns:
+        One argparse help string (``%`` escaped).
+    """
+    kinds = "; ".join(f"{f.name}: {f.help}" for f in formats())
+    return f"{lead} in any format fastneus reads, detected from its files ({kinds})".replace("%", "%%")
 
 
 def _convert(args) -> int:
@@ -82,8 +96,9 @@ def _import_calib(args) -> int:
 def register(subparsers) -> None:
     p = subparsers.add_parser("convert", help="convert a scene between formats (fastneus, ActiveNeuS, NeRF transforms.json; reads NeuS too)",
                               description="Read a scene of any supported format and write it as TO.")
-    p.add_argument("scene", help="scene folder (fastneus, ActiveNeuS, NeuS or NeRF transforms.json)")
-    p.add_argument("--to", required=True, choices=writable())
+    p.add_argument("scene", help=scene_help("scene folder to read,"))
+    p.add_argument("--to", required=True, choices=writable(),
+                   help=f"format to write: {', '.join(writable())} (the formats with a writer)")
     p.add_argument("--out", required=True, help="output folder")
     p.add_argument("--downscale", type=int, default=1, help="activeneus target: shrink images by this factor")
     p.set_defaults(func=_convert)

@@ -8,10 +8,11 @@ from fastneus.light.patterns import make_pattern, parse_size, pattern_kinds, wri
 def register(subparsers) -> None:
     p = subparsers.add_parser("patterns", help="write projector pattern PNGs",
                               description="Generate projector patterns (" + ", ".join(pattern_kinds()) + ") as PNG files.")
-    p.add_argument("--kind", required=True, choices=pattern_kinds())
+    p.add_argument("--kind", required=True, choices=pattern_kinds(),
+                   help=f"pattern kind: {', '.join(pattern_kinds())}")
     p.add_argument("--size", default="1024x768", help="projector resolution WxH (default 1024x768)")
     p.add_argument("--out", required=True, help="output folder")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=int, default=0, help="random seed of random patterns, e.g. dots (default 0)")
     p.add_argument("--count", type=int, default=None,
                    help="lines per axis (crosslaser, grid), dots (dots) or steps (phaseshift)")
     p.add_argument("--line-width", type=int, default=None, help="line / stripe / dot width in pixels")

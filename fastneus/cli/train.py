@@ -5,6 +5,7 @@ import argparse
 from pathlib import Path
 
 from fastneus.cli import add_device_arg, add_threads_arg, resolve_device, threads_override
+from fastneus.cli.formats import scene_help
 from fastneus.errors import FastneusError
 
 
@@ -81,7 +82,7 @@ def add_config_args(p: argparse.ArgumentParser) -> None:
 
 
 def _common(p: argparse.ArgumentParser) -> None:
-    p.add_argument("scene", help="scene folder: fastneus (scene.json), ActiveNeuS or NeuS (cameras_sphere.npz), NeRF / instant-ngp / nerfstudio (transforms.json); the format is detected")
+    p.add_argument("scene", help=scene_help())
     p.add_argument("--out", help="run folder (default runs/<scene>-<verb>)")
     p.add_argument("--resume", action="store_true", help="continue from the run folder's checkpoint "
                                                          "(also after Ctrl-C, which saves one)")
