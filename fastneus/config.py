@@ -170,6 +170,11 @@ class LossSection:
     bg_weight: float = knob(0.1, "weight of the background prior", lo=0.0)
     bg_start_frac: float = knob(0.2, "the background prior ramps in from this fraction of the run to twice it", **FRAC)
     bg_tolerance: float = knob(0.008, "per-channel distance to `background` still counted as it", lo=0.0)
+    robust: str = knob("l1", "photometric penalty on |rendered - photo|: l1 | charbonnier | huber (scale robust_eps)",
+                       choices=("l1", "charbonnier", "huber"))
+    robust_eps: float = knob(0.01, "scale of the charbonnier / huber penalty (linear units)", lo=0.0, lo_open=True)
+    saturated: str = knob("onesided", "photo channels >= 254: onesided (rendering brighter is no error) | mask "
+                          "(pixel left out) | off", choices=("onesided", "mask", "off"))
 
 
 @dataclass(frozen=True)
@@ -180,6 +185,11 @@ class IllumSection:
     learn_illum: bool = knob(True, "learn i_r (reflectance) and i_b (bias)")
     illum_warmup_frac: float = knob(0.15, "i_r, i_b frozen for this fraction of the run", **FRAC)
     illum_init: str = knob("scene", "start i_r, i_b at the scene's values | ones", choices=("scene", "ones"))
+    response: str = knob("auto", "camera response the photos are decoded with: auto (scene.json, else the "
+                         "files' tags, else srgb) | linear | srgb | gamma=G")
+    exposure: bool = knob(True, "learn a gain per photo (auto-exposure); the first training frame's is 1",
+                          model=True)
+    lr_exposure: float = knob(1e-2, "learning rate of the per-photo log-gains", lo=0.0)
 
 
 @dataclass(frozen=True)
@@ -496,6 +506,11 @@ def validate(cfg: Config, source: str = "config") -> None:
         raise FastneusError("must not exceed rays.max_rays", file=source, field="rays.min_rays")
     if cfg.hashgrid.base_res > cfg.hashgrid.finest_res:
         raise FastneusError("must not exceed hashgrid.finest_res", file=source, field="hashgrid.base_res")
+    r = cfg.illum.response  # the grammar of fastneus.data.response.parse_response (a lower layer may not import it)
+    m = re.fullmatch(r"gamma=([0-9]*\.?[0-9]+(?:[eE][-+]?[0-9]+)?)", r) if isinstance(r, str) else None
+    if not (r in ("auto", "linear", "srgb") or (m and 0.2 <= float(m.group(1)) <= 5.0)):
+        raise FastneusError(f"must be auto, linear, srgb or gamma=G with G in [0.2, 5], got {r!r}", file=source,
+                            field="illum.response")
 
 
 def load_config(config: str | None = None, overrides: list[str] | None = None,
