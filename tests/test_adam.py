@@ -94,3 +94,36 @@ def test_no_torchdynamo_import():
             "assert 'torch._dynamo' not in sys.modules\nprint('ok')")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert out.returncode == 0 and out.stdout.strip() == "ok", out.stderr[-2000:]
+
+
+def test_gated_step_matches_step_and_skips_exactly():
+    """The device-gated update (CUDA's NaN guard without a host sync) against the plain step:
+    ``ok`` true gives the same parameters and moments, ``ok`` false with NaN/Inf gradients
+    leaves every parameter and moment exactly as it was."""
+    seed = int.from_bytes(os.urandom(4), "little")
+    gen = torch.Generator().manual_seed(seed)
+    init = _params(gen)
+    grads = [[torch.randn(p.shape, generator=gen, dtype=torch.float64) * 10 ** (i - 2) for i, p in enumerate(init)]
+             for _ in range(6)]
+    ours = [p.clone().requires_grad_(True) for p in init]
+    ref = [p.clone().requires_grad_(True) for p in init]
+    a, b = Adam(_groups(ours), betas=(0.9, 0.99), eps=1e-15), Adam(_groups(ref), betas=(0.9, 0.99), eps=1e-15)
+    for gs in grads:
+        for p, q, g in zip(ours, ref, gs):
+            p.grad, q.grad = g.clone(), g.clone()
+        a.gated_step(torch.tensor(True))
+        b.step()
+    for x, y in zip(ours, ref):
+        torch.testing.assert_close(x, y, rtol=1e-12, atol=1e-14, msg=f"seed {seed}")
+    for x, y in zip(ours, ref):
+        torch.testing.assert_close(a.state[x]["exp_avg_sq"], b.state[y]["exp_avg_sq"], rtol=1e-12, atol=1e-20)
+    before = [p.detach().clone() for p in ours]
+    moments = [(a.state[p]["exp_avg"].clone(), a.state[p]["exp_avg_sq"].clone()) for p in ours]
+    for i, p in enumerate(ours):
+        g = torch.randn(p.shape, generator=gen, dtype=torch.float64)
+        g.view(-1)[0] = (float("nan"), float("inf"), -float("inf"), 1.0)[i % 4]
+        p.grad = g
+    a.gated_step(torch.tensor(False))
+    for p, b0, (m, v) in zip(ours, before, moments):
+        assert torch.equal(p.detach(), b0) and torch.equal(a.state[p]["exp_avg"], m)
+        assert torch.equal(a.state[p]["exp_avg_sq"], v)

@@ -41,7 +41,7 @@ def pattern_pass_split(cfg, device) -> bool:
 def render_rays(field, bits: torch.Tensor, grid_res: int, proj, origins: torch.Tensor, dirs: torch.Tensor,
                 fidx: torch.Tensor, cfg, *, i_r: torch.Tensor, i_b: torch.Tensor, cos_anneal: float,
                 jitter: bool = True, with_normals: bool = False, curvature: bool = False,
-                use_pattern: bool | None = None) -> dict:
+                use_pattern: bool | None = None, extra_points: torch.Tensor | None = None) -> dict:
     """Render a batch of rays.
 
     Args:
@@ -58,9 +58,13 @@ def render_rays(field, bits: torch.Tensor, grid_res: int, proj, origins: torch.T
         with_normals: also return per-ray weighted normals.
         curvature: also return the curvature residual per sample.
         use_pattern: override ``cfg.illum.use_pattern`` (False renders without projection).
+        extra_points: [E, 3] normalised points whose SDF gradients are wanted too (the eikonal
+            term's uniform points): evaluated in the same field call as the samples, so the hash
+            grid and the MLP run once per step instead of twice.
     Returns:
         dict with color [B,3] ([B,K,3] for a [B,K] fidx), opacity [B], depth [B] (normalised t), texture [B,3],
-        normal [B,3] (if asked), grad [S,3], curv [S] or None, n_samples (int).
+        normal [B,3] (if asked), grad [S,3], curv [S] or None, n_samples (int); with
+        ``extra_points``: grad_all [S + E, 3] (the samples' gradients, then the extra points').
     """
     device = origins.device
     n = origins.shape[0]
@@ -71,11 +75,19 @@ def render_rays(field, bits: torch.Tensor, grid_res: int, proj, origins: torch.T
                                                cfg.rays.max_samples_per_ray, jit, cfg.rays.bound, 0.0)
     s = t0.shape[0]
     if s == 0:
-        return _empty(n, device, shots=fidx.shape[1] if fidx.dim() == 2 else 0)
+        res = _empty(n, device, shots=fidx.shape[1] if fidx.dim() == 2 else 0)
+        if extra_points is not None:
+            res["grad_all"] = field.sdf_and_grad(extra_points)[2]
+        return res
     ri = ray_index.long()
     d_s = dirs[ri]
     pos = origins[ri] + d_s * ((t0 + t1) * 0.5)[:, None]
-    sdf, geo, grad, curv = field.sdf_and_grad(pos, with_curvature=curvature)
+    if extra_points is None:
+        sdf, geo, grad, curv = field.sdf_and_grad(pos, with_curvature=curvature)
+    else:
+        sdf, geo, grad_all, curv = field.sdf_and_grad(torch.cat([pos, extra_points]), with_curvature=curvature)
+        sdf, geo, grad = sdf[:s], geo[:s], grad_all[:s]
+        curv = None if curv is None else curv[:s]
     color = field.color(pos, grad, d_s, geo)
     pattern_on = cfg.illum.use_pattern if use_pattern is None else use_pattern
     pat = proj.pattern if pattern_on else torch.full_like(proj.pattern, -1)
@@ -116,6 +128,8 @@ def render_rays(field, bits: torch.Tensor, grid_res: int, proj, origins: torch.T
     if fidx.dim() == 2:
         res["color"] = torch.stack(colors, 1)
     res["grad"], res["curv"], res["n_samples"] = grad, curv, s
+    if extra_points is not None:
+        res["grad_all"] = grad_all
     if with_normals:
         w = res["weights"].detach()
         nrm = grad.detach() / grad.detach().norm(dim=-1, keepdim=True).clamp_min(1e-6)

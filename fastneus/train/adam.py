@@ -87,6 +87,60 @@ class Adam:
                 torch._foreach_add_(denom, g["eps"])
                 torch._foreach_addcdiv_(ps, ms, denom, -g["lr"] / bc1)
 
+    @torch.no_grad()
+    def gated_step(self, ok: torch.Tensor) -> None:
+        """The update of :meth:`step`, applied only where the device flag ``ok`` is true, with no
+        host read of it (the NaN guard of a CUDA step without a host sync).
+
+        Non-finite gradients are zeroed first (0 * NaN is NaN), then the moments and parameters
+        move by ``ok`` times their Adam increment; so a step with ``ok`` false leaves parameters
+        and moments exactly as they were, and one with ``ok`` true matches :meth:`step` up to
+        rounding. Every group's tensors go through one set of ``_foreach`` calls (the per-group
+        learning rate is a per-tensor scalar): ~10 launches for the whole model instead of ~7
+        per group. The step count (bias correction) still advances on a gated-off step, as in
+        torch's capturable Adam; a skipped step is rare and its effect on the correction tiny.
+
+        Args:
+            ok: [] or [1] bool/float tensor on the parameters' device.
+        """
+        okf = ok.to(torch.float32).reshape(())
+        buckets: dict[tuple, tuple[list, list, list, list, list]] = {}
+        for g in self.param_groups:
+            b1, b2 = g["betas"]
+            for p in g["params"]:
+                if p.grad is None:
+                    continue
+                st = self.state.get(p)
+                if st is None:
+                    st = self.state[p] = {"step": 0, "exp_avg": torch.zeros_like(p),
+                                          "exp_avg_sq": torch.zeros_like(p)}
+                st["step"] += 1
+                t = st["step"]
+                # -lr / bc1 and 1 / bc2_sqrt per tensor; eps and the betas are shared by a bucket
+                lists = buckets.setdefault((b1, b2, g["eps"], p.dtype), ([], [], [], [], []))
+                lists[0].append(p)
+                lists[1].append(p.grad)
+                lists[2].append(st["exp_avg"])
+                lists[3].append(st["exp_avg_sq"])
+                lists[4].append((-g["lr"] / (1 - b1 ** t), 1.0 / math.sqrt(1 - b2 ** t)))
+        for (b1, b2, eps, dtype), (ps, gs, ms, vs, sc) in buckets.items():
+            w = okf.to(dtype)
+            gs = [torch.nan_to_num(x, nan=0.0, posinf=0.0, neginf=0.0) for x in gs]
+            d = torch._foreach_sub(gs, ms)                  # m += ok (1 - b1) (g - m)
+            torch._foreach_mul_(d, w * (1 - b1))
+            torch._foreach_add_(ms, d)
+            d = torch._foreach_mul(gs, gs)                  # v += ok (1 - b2) (g^2 - v)
+            torch._foreach_sub_(d, vs)
+            torch._foreach_mul_(d, w * (1 - b2))
+            torch._foreach_add_(vs, d)
+            denom = torch._foreach_sqrt(vs)
+            torch._foreach_mul_(denom, [s[1] for s in sc])
+            torch._foreach_add_(denom, eps)
+            upd = torch._foreach_div(ms, denom)
+            torch._foreach_mul_(upd, [s[0] for s in sc])
+            torch._foreach_mul_(upd, w)
+            torch._foreach_add_(ps, upd)
+
     # ------------------------------------------------------------------ checkpoints
     def state_dict(self) -> dict:
         """torch.optim's layout: ``state`` keyed by parameter index, groups with index lists."""

@@ -4,6 +4,16 @@ from __future__ import annotations
 import torch
 
 
+def finite_flag(opt, loss: torch.Tensor) -> torch.Tensor:
+    """[] bool on the loss's device: the loss and every gradient of ``opt``'s parameters are
+    finite (one fused norm over all gradients; no host read)."""
+    grads = [p.grad for g in opt.param_groups for p in g["params"] if p.grad is not None]
+    total = loss.detach().float().reshape(())
+    if grads:
+        total = total + torch.stack(torch._foreach_norm(grads)).float().sum()
+    return torch.isfinite(total)
+
+
 def finite_step(opt, loss: torch.Tensor) -> bool:
     """Step ``opt`` (fastneus.train.adam.Adam or a torch optimiser) unless the loss or any gradient is non-finite; then drop the gradients.
 
@@ -13,11 +23,7 @@ def finite_step(opt, loss: torch.Tensor) -> bool:
     Returns:
         True if the optimiser stepped, False if the step was skipped.
     """
-    grads = [p.grad for g in opt.param_groups for p in g["params"] if p.grad is not None]
-    total = loss.detach().float().reshape(())
-    if grads:
-        total = total + torch.stack(torch._foreach_norm(grads)).float().sum()
-    if not bool(torch.isfinite(total)):
+    if not bool(finite_flag(opt, loss)):
         opt.zero_grad(set_to_none=True)
         return False
     opt.step()

@@ -22,7 +22,7 @@ from fastneus.kernels.occupancy import OccupancyGrid
 from fastneus.train.checkpoint import CKPT_NAME, load_checkpoint, restore, save_checkpoint  # noqa: F401 (re-export)
 from fastneus.train.adam import Adam
 from fastneus.train import losses
-from fastneus.train.guard import finite_step
+from fastneus.train.guard import finite_flag, finite_step
 from fastneus.train.multishot import make_bank
 from fastneus.train.rig import Rig
 from fastneus.train.rig import load_into as rig_load
@@ -154,7 +154,9 @@ class Trainer:
         self.step = 0
         self.n_rays = cfg.rays.init_rays
         self.elapsed = 0.0          # training seconds, kept across resume
-        self.skipped = 0            # NaN/Inf steps skipped
+        self._skipped = 0           # NaN/Inf steps skipped (CUDA: + the device counter below)
+        # on CUDA the NaN guard gates the Adam update on the device: no host sync per step
+        self._skipped_dev = torch.zeros((), dtype=torch.int64, device=self.device) if self.device.type == "cuda" else None
         self.empty_steps = 0        # consecutive steps whose rays found no occupied cell
         self.history: list[dict] = []
         self._grid_open = False     # grid forced fully occupied (warm-up) since the last update
@@ -165,6 +167,17 @@ class Trainer:
         self.clock = None  # fastneus.timing.RunClock of the run (pipeline.train_scene): fit() records its phases
 
     # ------------------------------------------------------------------ helpers
+    @property
+    def skipped(self) -> int:
+        """Steps skipped by the NaN/Inf guard (a host read of the device counter on CUDA)."""
+        return self._skipped + (int(self._skipped_dev) if self._skipped_dev is not None else 0)
+
+    @skipped.setter
+    def skipped(self, n: int) -> None:
+        self._skipped = int(n)
+        if self._skipped_dev is not None:
+            self._skipped_dev.zero_()
+
     def illumination(self) -> tuple[torch.Tensor, torch.Tensor]:
         return self.log_ir.exp(), self.log_ib.exp()
 
@@ -237,9 +250,12 @@ class Trainer:
         self._set_lr(p)
         batch = self.rig.rays(self.bank.sample(self.n_rays, self.gen, bright_fraction=c.rays.bright_fraction))
         i_r, i_b = self.illumination()
+        # a few uniform points for the eikonal term so the far field stays an SDF; they go through
+        # the field in the same call as the samples (one hash + MLP pass instead of two)
+        xr = torch.rand(max(256, self.n_rays // 4), 3, device=self.device, generator=self.gen) * 2 - 1
         out = render_rays(self.field, self.grid.bits, self.grid.resolution, self.rig.projection(), batch["origins"],
                           batch["dirs"], batch["fidx"], c, i_r=i_r, i_b=i_b, cos_anneal=self.cos_anneal(p),
-                          jitter=True, curvature=c.loss.curvature_weight > 0)
+                          jitter=True, curvature=c.loss.curvature_weight > 0, extra_points=xr)
         s = out["n_samples"]
         # adapt the ray count to the sample budget (s is known on the host from marching)
         mean_spr = max(1.0, s / self.n_rays)
@@ -258,11 +274,8 @@ class Trainer:
         # [B, 3], or [B, K, 3] with K shots per ray (multi-shot); + water (fastneus.train.rig)
         pred = self.rig.composite(out["color"], out, c.rays.background).clamp(max=1.0)
         terms = losses.photometric(pred, batch["rgb"])
-        # eikonal on the samples plus a few uniform points so the far field stays an SDF
-        n_rand = max(256, self.n_rays // 4)
-        xr = torch.rand(n_rand, 3, device=self.device, generator=self.gen) * 2 - 1
-        _, _, grad_r, _ = self.field.sdf_and_grad(xr)
-        terms |= losses.eikonal(torch.cat([out["grad"], grad_r]), c.loss.eikonal_weight)
+        # eikonal on the samples plus the uniform points (evaluated with them in render_rays)
+        terms |= losses.eikonal(out["grad_all"], c.loss.eikonal_weight)
         if self.masks_used and "mask" in batch:
             terms |= losses.mask_bce(out["opacity"], batch["mask"], c.loss.mask_weight)
         elif self.bg_used and "bg" in batch and p >= c.loss.bg_start_frac:
@@ -276,12 +289,17 @@ class Trainer:
         loss = losses.total(terms)
         self.opt.zero_grad(set_to_none=True)
         loss.backward()
-        stepped = finite_step(self.opt, loss)  # NaN/Inf guard
+        if self._skipped_dev is not None:  # NaN/Inf guard on the device (no host sync)
+            ok = finite_flag(self.opt, loss)
+            self.opt.gated_step(ok)
+            self._skipped_dev += (~ok).to(torch.int64)
+        elif not finite_step(self.opt, loss):  # NaN/Inf guard
+            self.rig.fix_gauge()
+            self.step += 1
+            self._skipped += 1
+            return None
         self.rig.fix_gauge()
         self.step += 1
-        if not stepped:
-            self.skipped += 1
-            return None
         return {"loss": loss.detach(), "l1": terms["rgb"].detach(), "mse": terms["mse"], "eik": terms["eik"],
                 "spr": s / batch["origins"].shape[0], "samples": s}
 

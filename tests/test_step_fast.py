@@ -1,0 +1,87 @@
+"""The fast paths of the training step against the eager reference, on the same inputs:
+the device-gated NaN guard (CUDA's step without a host sync) against the host-checked one,
+and the eikonal points evaluated in the same field call as the samples against a separate
+call. CPU always; CUDA where available."""
+from __future__ import annotations
+
+import copy
+
+import pytest
+import torch
+
+from conftest import SMALL_RUN
+from fastneus.config import load_config
+from fastneus.data import Scene
+
+DEVICES = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
+
+
+def _trainer(small_scene, tmp_path, device, name):
+    from fastneus.train.trainer import Trainer
+
+    cfg = load_config("cpu-quick", SMALL_RUN + ["threads=1", "init_geometry=sphere"])
+    return Trainer(Scene.load(small_scene), cfg, tmp_path / name, device)
+
+
+def _params(tr):
+    return [p.detach().clone() for g in tr.opt.param_groups for p in g["params"]]
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_gated_guard_matches_the_host_guard(small_scene, tmp_path, device):
+    """Three steps with the device-gated guard and three with the host-checked one, from the
+    same state and random streams: same losses and parameters (to rounding); then a NaN loss
+    is skipped by both without moving a parameter, and counted."""
+    a = _trainer(small_scene, tmp_path, device, "a")
+    b = _trainer(small_scene, tmp_path, device, "b")
+    b.field.load_state_dict(a.field.state_dict())
+    a._skipped_dev = torch.zeros((), dtype=torch.int64, device=a.device)  # force the gated path
+    b._skipped_dev = None
+    for tr in (a, b):
+        tr.gen.manual_seed(7)
+    for _ in range(3):
+        torch.manual_seed(11)
+        ra = a.train_step()
+        torch.manual_seed(11)
+        rb = b.train_step()
+        torch.testing.assert_close(ra["loss"], rb["loss"], rtol=1e-5, atol=1e-7)
+    for x, y in zip(_params(a), _params(b)):
+        torch.testing.assert_close(x, y, rtol=1e-4, atol=1e-6)
+    assert a.skipped == b.skipped == 0
+    for tr in (a, b):  # a NaN anywhere in the loss: no parameter moves, the step is counted
+        before = _params(tr)
+        tr.field.variance.data.fill_(float("nan"))
+        nan_v = tr.field.variance.detach().clone()
+        tr.train_step()
+        after = _params(tr)
+        for x, y in zip(before, after):
+            if x.shape == nan_v.shape and torch.isnan(y).all():
+                continue
+            assert torch.equal(x, y)
+        assert tr.skipped == 1
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_eikonal_points_in_the_sample_call_match_a_separate_call(small_scene, tmp_path, device):
+    from fastneus.field.renderer import render_rays
+
+    tr = _trainer(small_scene, tmp_path, device, "e")
+    tr.train_step()
+    c = tr.cfg
+    batch = tr.rig.rays(tr.bank.sample(64, tr.gen))
+    xr = torch.rand(300, 3, device=tr.device) * 2 - 1
+    i_r, i_b = tr.illumination()
+    kw = dict(i_r=i_r, i_b=i_b, cos_anneal=1.0, jitter=False)
+    out = render_rays(tr.field, tr.grid.bits, tr.grid.resolution, tr.rig.projection(), batch["origins"],
+                      batch["dirs"], batch["fidx"], c, extra_points=xr, **kw)
+    ref = render_rays(tr.field, tr.grid.bits, tr.grid.resolution, tr.rig.projection(), batch["origins"],
+                      batch["dirs"], batch["fidx"], c, **kw)
+    s = out["n_samples"]
+    assert s > 0 and out["grad_all"].shape == (s + 300, 3)
+    torch.testing.assert_close(out["color"], ref["color"], rtol=1e-5, atol=1e-6)
+    torch.testing.assert_close(out["grad_all"][:s], ref["grad"], rtol=1e-5, atol=1e-6)
+    torch.testing.assert_close(out["grad_all"][s:], tr.field.sdf_and_grad(xr)[2], rtol=1e-5, atol=1e-6)
+    # gradients reach the table and the MLP through the extra points' share alone
+    tr.opt.zero_grad()
+    (out["grad_all"][s:].norm(dim=-1) - 1).pow(2).mean().backward()
+    assert float(tr.field.sdf_net[0].weight.grad.abs().sum()) > 0
