@@ -41,7 +41,7 @@ class Job:
         name: the run folder's name under the batch folder.
         run: the run folder.
         state: ``new`` / ``resume`` (planned), ``queued``, ``running``, then one of
-            :data:`FINAL_STATES`.
+            :data:`FINAL_STATES`. resume: the run had a checkpoint (train gets ``--resume``).
         error: the one-line error of a failed or interrupted run.
         worker: where it ran (``gpu 0``, ``cpu 1``, ``ray``).
         steps: the last logged step; ``total``: the run's step count when known.
@@ -61,6 +61,7 @@ class Job:
     chamfer_mm: float | None = None
     started: float | None = None
     log_offset: int = 0
+    resume: bool = False
     metrics: dict = field(default_factory=dict)
 
     @property
@@ -216,7 +217,7 @@ def plan(scenes: list[Path], out: Path) -> list[Job]:
                                                                                         dict) else None
             job.chamfer_mm = _chamfer(job.metrics)
         elif (run / CKPT_NAME).is_file():
-            job.state = "resume"
+            job.state, job.resume = "resume", True
         jobs.append(job)
     return jobs
 
@@ -235,7 +236,8 @@ def prepare(job: Job, out: Path) -> None:
     if _recorded_scene(run) is None:
         atomic_write_json(run / BATCH_MARK, {"written_by": "fastneus batch", "scene": str(job.scene)})
     with open_append(job.log) as f:
-        f.write(f"=== fastneus batch: {time.strftime('%Y-%m-%d %H:%M:%S')} {job.state} {job.scene}\n")
+        f.write(f"=== fastneus batch: {time.strftime('%Y-%m-%d %H:%M:%S')} {'resume' if job.resume else 'train'} "
+                f"{job.scene}\n")
         job.log_offset = f.tell()
 
 
@@ -249,7 +251,7 @@ def train_args(job: Job, config: str | None, device: str | None, threads: int | 
     """The ``fastneus train`` arguments (after ``python -m fastneus``) for ``job``: ``--resume`` for an
     interrupted run (its own config.yaml; ``--config`` is not passed then), the same options otherwise."""
     args = ["train", str(job.scene), "--out", str(job.run)]
-    if job.state == "resume":
+    if job.resume:
         args.append("--resume")
     elif config:
         args += ["--config", config]

@@ -66,6 +66,10 @@ def run_batch(items: list[str], out: str | os.PathLike, opts: BatchOptions, cons
 
     scenes = expand_scenes(items)
     check_options(opts)
+    if opts.ray:
+        from fastneus.batch.cluster import import_ray
+
+        import_ray()  # without the extra: one line, before anything is written
     out = Path(os.path.abspath(check_out_dir(out)))
     make_out_dir(out)
     config = _config_arg(opts.config)
