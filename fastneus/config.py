@@ -170,8 +170,8 @@ class LossSection:
     bg_weight: float = knob(0.1, "weight of the background prior", lo=0.0)
     bg_start_frac: float = knob(0.2, "the background prior ramps in from this fraction of the run to twice it", **FRAC)
     bg_tolerance: float = knob(0.008, "per-channel distance to `background` still counted as it", lo=0.0)
-    robust: str = knob("l1", "photometric penalty on |rendered - photo|: l1 | charbonnier | huber (scale robust_eps)",
-                       choices=("l1", "charbonnier", "huber"))
+    robust: str = knob("l1", "photometric penalty on |rendered - photo|: l1 | charbonnier | huber | cauchy "
+                       "(scale robust_eps)", choices=("l1", "charbonnier", "huber", "cauchy"))
     robust_eps: float = knob(0.01, "scale of the charbonnier / huber penalty (linear units)", lo=0.0, lo_open=True)
     saturated: str = knob("onesided", "photo channels >= 254: onesided (rendering brighter is no error) | mask "
                           "(pixel left out) | off", choices=("onesided", "mask", "off"))

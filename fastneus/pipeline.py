@@ -68,7 +68,8 @@ def finish_run(trainer, console=None, eval_frames: list[int] | None = None, mesh
             res = mesh_resolution or cfg.export.mesh_resolution
             mesh = extract_mesh_arrays(trainer.field, scene, res, trainer.device, bound=cfg.rays.bound,
                                        allowed=trainer.seen)
-            mesh = shade_mesh(trainer.field, scene, mesh, trainer.device)  # normals and learned colours
+            # normals and learned colours, encoded like the photos
+            mesh = shade_mesh(trainer.field, scene, mesh, trainer.device, response=getattr(trainer, "response", None))
             save_mesh(mesh, run / "mesh.ply")
             at = clock.mark("mesh_ready")
             dt = time.perf_counter() - t
@@ -114,7 +115,8 @@ def finish_run(trainer, console=None, eval_frames: list[int] | None = None, mesh
         metrics.update(timing.peak_memory(trainer.device))
         metrics["timing"] = clock.summary()
         atomic_write_json(run / "metrics.json", metrics)
-        ill = {k: metrics[k] for k in ("i_r", "i_b", "i_r_gt", "i_b_gt", "i_r_err", "i_b_err") if k in metrics}
+        ill = {k: metrics[k] for k in ("i_r", "i_b", "i_r_gt", "i_b_gt", "i_r_err", "i_b_err", "exposure_gains",
+                                       "exposure_err") if k in metrics}
         atomic_write_json(run / "illumination.json", ill)
     with clock.phase("report"):
         # the clock read here, after the eval phase closed: the page's wall-clock table has its eval row
@@ -283,11 +285,13 @@ def _train_and_finish(trainer, scene, cfg: Config, out: Path, device: str, conso
         console.print(trainer.threads_note)
         console.print(trainer.masks_note)
         console.print(trainer.bg_note)
+        console.print(trainer.response_note)
         length = f"time budget {cfg.run.time_budget:g} s" if cfg.run.time_budget > 0 else f"{cfg.run.steps} steps"
         console.print(f"run length: {length}; every schedule is a fraction of it")
     atomic_write_json(out / "run.json", {"scene": str(scene.root), "device": str(device), "preset": cfg.run.preset,
                                          "threads": trainer.threads, "masks": trainer.masks_note,
-                                         "background_prior": trainer.bg_note, **provenance()})
+                                         "background_prior": trainer.bg_note, "response": trainer.response_note,
+                                         **provenance()})
     with stop_on_signal(trainer, out):
         last = trainer.fit(final_save=not finish)  # finish_run saves it right after mesh.ply
     if console is not None and last:
@@ -370,7 +374,8 @@ def extract_mesh(trainer, resolution: int | None = None):
     res = resolution or trainer.cfg.export.mesh_resolution
     mesh = extract_mesh_arrays(trainer.field, trainer.scene, res, trainer.device, bound=trainer.cfg.rays.bound,
                                allowed=trainer.seen)
-    return shade_mesh(trainer.field, trainer.scene, mesh, trainer.device).to_trimesh()
+    return shade_mesh(trainer.field, trainer.scene, mesh, trainer.device,
+                      response=getattr(trainer, "response", None)).to_trimesh()
 
 
 def evaluate(run: str | os.PathLike, device: str | None = None, scene: str | None = None,

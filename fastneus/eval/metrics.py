@@ -19,6 +19,7 @@ from scipy.spatial import cKDTree
 
 from fastneus.errors import FastneusError
 from fastneus.field.renderer import render_image
+from fastneus.data.response import decode_lut, encode
 from fastneus.train.rays import RayBank, build_projection
 
 
@@ -144,6 +145,14 @@ def render_frames(trainer, frames: list[int], chunk: int = 8192) -> dict[int, di
     if getattr(trainer, "rig", None) is not None:  # learned light model (blur...); poses are per training frame
         proj = trainer.rig.light_model(proj)
     i_r, i_b = (x.detach() for x in trainer.illumination())
+    # the camera: the learned exposure of training frames (1 elsewhere) and the response (linear: none)
+    response = str(getattr(trainer, "response", "linear"))
+    lut = decode_lut(response)
+    gain = {}
+    if getattr(trainer, "log_gain", None) is not None:
+        from fastneus.train.losses import frame_log_gains
+
+        gain = dict(zip(trainer.frames, frame_log_gains(trainer.log_gain.detach()).exp().cpu().tolist()))
     out = {}
     for a, i in enumerate(frames):
         o, d, (h, w) = bank.image_rays(a)
@@ -159,13 +168,16 @@ def render_frames(trainer, frames: list[int], chunk: int = 8192) -> dict[int, di
         else:
             bg = cfg.rays.background * (1 - r["opacity"])[:, None]
             color, texture = r["color"] + bg, r["texture"] + bg
+        photo = bank.image(a).cpu().numpy()
         out[i] = {
-            "color": color.numpy().reshape(h, w, 3),
+            "color": color.numpy().reshape(h, w, 3) * gain.get(i, 1.0),  # the photo's prediction (linear)
             "texture": texture.numpy().reshape(h, w, 3),
             "opacity": r["opacity"].numpy().reshape(h, w),
             "depth": depth_to_z(scene, i, r["depth"].numpy() / np.maximum(r["opacity"].numpy(), 1e-6), h, w),
             "normal": r["normal"].numpy().reshape(h, w, 3),
-            "photo": bank.image(a).cpu().numpy(),
+            "photo": photo,
+            "photo_linear": lut[photo],
+            "response": response,
         }
     return out
 
@@ -175,7 +187,7 @@ def image_metrics(scene, renders: dict[int, dict]) -> dict:
     acc: dict[str, list[float]] = {}
     add = lambda k, v: acc.setdefault(k, []).append(v)  # noqa: E731
     for i, r in renders.items():
-        add("psnr_pattern", _psnr(r["color"], r["photo"] / 255.0))
+        add("psnr_pattern", _psnr(np.minimum(r["color"], 1.0), r.get("photo_linear", r["photo"] / 255.0)))
         clean = scene.gt_clean(i)
         if clean is not None:
             add("psnr_texture", _psnr(r["texture"], clean / 255.0))
@@ -199,6 +211,25 @@ def illumination_metrics(trainer) -> dict:
     if ill is not None and ill.known:
         out.update({"i_r_gt": float(ill.i_r), "i_b_gt": float(ill.i_b),
                     "i_r_err": abs(i_r - float(ill.i_r)), "i_b_err": abs(i_b - float(ill.i_b))})
+    out.update(exposure_metrics(trainer))
+    return out
+
+
+def exposure_metrics(trainer) -> dict:
+    """The learned per-photo exposure gains (training frames, the first = 1) and, when the scene
+    records the true ones (``meta.capture.gains`` of ``fastneus synth``), their error relative to
+    the first training frame's: ``exposure_err`` = max |learned / true - 1|."""
+    if getattr(trainer, "log_gain", None) is None:
+        return {}
+    from fastneus.train.losses import frame_log_gains
+
+    g = frame_log_gains(trainer.log_gain.detach()).exp().cpu().numpy()
+    out = {"exposure_gains": [round(float(v), 5) for v in g]}
+    true = (trainer.scene.meta or {}).get("capture", {}).get("gains")
+    if isinstance(true, list) and len(true) == len(trainer.scene.frames):
+        t = np.asarray([float(true[i]) for i in trainer.frames])
+        t = t / t[0]
+        out["exposure_err"] = float(np.abs(g / t - 1).max())
     return out
 
 
@@ -217,7 +248,8 @@ def save_renders(renders: dict[int, dict], folder: Path) -> dict[int, dict[str, 
             dv = np.where(valid, 1 - (d - lo) / max(hi - lo, 1e-6) * 0.8, 0)
         # normals only where the surface is solid: faint fog would show as a grey halo
         n = r["normal"] / np.maximum(np.linalg.norm(r["normal"], axis=-1, keepdims=True), 1e-6)
-        imgs = {"photo": r["photo"], "color": to_u8(r["color"]), "texture": to_u8(r["texture"]),
+        resp = r.get("response", "linear")  # renders are linear: encoded like the photos to compare with them
+        imgs = {"photo": r["photo"], "color": to_u8(encode(r["color"], resp)), "texture": to_u8(encode(r["texture"], resp)),
                 "depth": to_u8(np.repeat(dv[..., None], 3, -1)), "normal": to_u8((n + 1) * 0.5 * valid[..., None])}
         paths[i] = {}
         for k, img in imgs.items():

@@ -31,6 +31,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from fastneus.data.response import encode
 from fastneus.errors import FastneusError
 from fastneus.io import atomic_write
 
@@ -529,11 +530,12 @@ def extract_mesh(field, scene, resolution: int, device, bound: str = "sphere",
     return extract_mesh_arrays(field, scene, resolution, device, bound=bound, allowed=allowed, **kw).to_trimesh()
 
 
-def shade_mesh(field, scene, mesh: MeshArrays, device, chunk: int = 1 << 15) -> MeshArrays:
+def shade_mesh(field, scene, mesh: MeshArrays, device, chunk: int = 1 << 15, response=None) -> MeshArrays:
     """Add vertex normals and colours: the SDF gradient and the learned pattern-free colour D.
 
     D is evaluated looking at each vertex head-on (view direction = -normal), the same
-    colour as the pattern-free texture renders (i_r = i_b = 0), in the photos' encoding.
+    colour as the pattern-free texture renders (i_r = i_b = 0), encoded in the photos' camera
+    response (``response``: the model is linear; None = linear photos).
 
     Args:
         field: the trained :class:`fastneus.field.model.SDFField` (normalised units).
@@ -541,6 +543,7 @@ def shade_mesh(field, scene, mesh: MeshArrays, device, chunk: int = 1 << 15) -> 
         mesh: the extracted mesh (world units).
         device: where the field is evaluated.
         chunk: vertices per field evaluation (memory).
+        response: the camera response the colours are encoded with (``fastneus.data.response``).
     Returns:
         ``mesh`` with ``normals`` [V, 3] float32 and ``colors`` [V, 3] uint8 set.
     """
@@ -553,7 +556,10 @@ def shade_mesh(field, scene, mesh: MeshArrays, device, chunk: int = 1 << 15) -> 
         with torch.no_grad():  # sdf_and_grad computes the analytic gradient locally even so
             _, geo, grad, _ = field.sdf_and_grad(x)
             n = grad / grad.norm(dim=-1, keepdim=True).clamp_min(1e-12)
-            colors.append((field.color(x, grad, -n, geo).clamp(0, 1) * 255 + 0.5).to(torch.uint8).cpu())
+            col = field.color(x, grad, -n, geo).clamp(0, 1)
+            if response is not None:
+                col = encode(col, response)
+            colors.append((col * 255 + 0.5).to(torch.uint8).cpu())
             normals.append(n.cpu())
     return dataclasses.replace(mesh, normals=torch.cat(normals).numpy().astype(np.float32),
                                colors=torch.cat(colors).numpy())

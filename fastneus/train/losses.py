@@ -11,18 +11,73 @@ import torch
 TERMS = ("rgb", "eikonal", "mask", "background", "prior", "curvature")
 
 
-def photometric(pred: torch.Tensor, target: torch.Tensor) -> dict[str, torch.Tensor]:
-    """L1 between rendered and photographed colour.
+def penalty(err: torch.Tensor, robust: str = "l1", eps: float = 0.01) -> torch.Tensor:
+    """Per-element photometric penalty of an absolute error (``loss.robust``).
 
     Args:
-        pred: [B, 3] or [B, K, 3] rendered colour (with the pattern), clipped at 1 like the camera.
-        target: same shape, the photo.
+        err: absolute differences, any shape; robust: ``l1`` | ``charbonnier`` (sqrt(e^2 + eps^2) - eps:
+            L1 with a smooth minimum) | ``huber`` (quadratic below ``eps``, L1 slope above) | ``cauchy``
+            (eps log(1 + e / eps): grows only logarithmically, so large residuals the model cannot
+            explain (highlights, speckle peaks) pull less); eps: ``loss.robust_eps``.
     Returns:
-        {"rgb": mean |pred - target|} (weight 1: the loss's unit), and "mse" (for the log's PSNR,
-        from the same difference, not summed).
+        Same shape as ``err``, in the units of L1 for errors much larger than ``eps``.
     """
-    err = (pred - target).abs()
-    return {"rgb": err.mean(), "mse": (err.detach() ** 2).mean()}
+    if robust == "l1":
+        return err
+    if robust == "charbonnier":
+        return torch.sqrt(err * err + eps * eps) - eps
+    if robust == "huber":
+        return torch.where(err < eps, 0.5 * err * err / eps, err - 0.5 * eps)
+    if robust == "cauchy":
+        return eps * torch.log1p(err / eps)
+    raise ValueError(f"unknown robust penalty {robust!r}")
+
+
+def photometric(pred: torch.Tensor, target: torch.Tensor, robust: str = "l1", eps: float = 0.01,
+                sat: torch.Tensor | None = None, saturated: str = "off") -> dict[str, torch.Tensor]:
+    """Photometric error between rendered and photographed colour (L1 by default).
+
+    Args:
+        pred: [B, 3] or [B, K, 3] rendered colour (with the pattern, times the frame's exposure
+            gain), clipped at 1 like the camera.
+        target: same shape, the photo (linear).
+        robust: ``loss.robust`` (:func:`penalty`); eps: ``loss.robust_eps``.
+        sat: same shape, bool, the photo's channel is saturated (>= 254); None = none.
+        saturated: ``loss.saturated``: ``onesided`` (a saturated channel says only "at least this
+            bright": rendering brighter is no error), ``mask`` (pixels with a saturated channel are
+            left out), ``off``.
+    Returns:
+        {"rgb": mean penalty} (weight 1: the loss's unit), and "mse" (for the log's PSNR, from the
+        same difference, not summed).
+    """
+    diff = pred - target
+    if sat is not None and saturated == "onesided":
+        diff = torch.where(sat & (diff > 0), torch.zeros_like(diff), diff)
+    err = diff.abs()
+    pen = penalty(err, robust, eps)
+    if sat is not None and saturated == "mask":
+        keep = (~sat.any(-1, keepdim=True)).to(err.dtype).expand_as(err)
+        n = keep.sum().clamp_min(1.0)
+        return {"rgb": (pen * keep).sum() / n, "mse": ((err.detach() ** 2) * keep).sum() / n}
+    return {"rgb": pen.mean(), "mse": (err.detach() ** 2).mean()}
+
+
+def frame_log_gains(log_gain: torch.Tensor) -> torch.Tensor:
+    """[F] log exposure gain of every training frame from the learned [F-1]: the first frame's is 0
+    (its gain 1 is the anchor that keeps the colours' scale fixed)."""
+    return torch.cat([log_gain.new_zeros(1), log_gain])
+
+
+def exposure_gain(log_gain: torch.Tensor, fidx: torch.Tensor) -> torch.Tensor:
+    """Per-ray exposure gain of each ray's frame, shaped to multiply a colour.
+
+    Args:
+        log_gain: [F-1] learned log-gains of the training frames after the first (:func:`frame_log_gains`).
+        fidx: [B] or [B, K] int rows of the training frames.
+    Returns:
+        [B, 1] or [B, K, 1] gains.
+    """
+    return frame_log_gains(log_gain).exp()[fidx.long()].unsqueeze(-1)
 
 
 def eikonal(grads: torch.Tensor, weight: float) -> dict[str, torch.Tensor]:

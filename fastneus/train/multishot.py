@@ -17,7 +17,7 @@ import numpy as np
 import torch
 
 from fastneus.errors import FastneusError
-from fastneus.train.rays import RayBank, normalised_camera, draw_pixels
+from fastneus.train.rays import RayBank, SATURATED, background_codes, draw_pixels, lut_mean, normalised_camera, to_linear
 
 
 def group_views(scene, frames: list[int]) -> list[list[int]]:
@@ -57,15 +57,20 @@ class ShotBank:
         device: where the store lives.
         shots: shots per ray and step: 0 or >= the most shots of a view = all of them, in order
             (views with fewer shots repeat theirs cyclically); else that many drawn per ray at random.
-        load_masks, brightness_cdf, background, bg_tolerance: as for ``RayBank``; a pixel is
+        load_masks, brightness_cdf, background, bg_tolerance, lut: as for ``RayBank``; a pixel is
             background when it is in every shot, its brightness is its brightest shot's, its mask
             is the first shot's.
     """
 
     def __init__(self, scene, frames: list[int], device, shots: int = 0, load_masks: bool = False,
-                 brightness_cdf: bool = False, background: float | None = None, bg_tolerance: float = 2.0 / 255):
+                 brightness_cdf: bool = False, background: float | None = None, bg_tolerance: float = 2.0 / 255,
+                 lut=None):
         self.frames = list(frames)
         self.device = torch.device(device)
+        self.lut = None if lut is None else torch.as_tensor(lut, dtype=torch.float32, device=self.device)  # [256]
+        hist = torch.zeros(3, 256, dtype=torch.int64) if lut is not None else None  # code histograms (mean)
+        bg_code = background_codes(self.lut.cpu(), background, bg_tolerance) if lut is not None and \
+            background is not None else None
         self.port = None  # rays in air only (make_bank sends ported cameras to RayBank)
         self.groups = group_views(scene, self.frames)
         V = len(self.groups)
@@ -101,9 +106,13 @@ class ShotBank:
                         raise FastneusError(f"frame {i} is not the size of its view's camera", field=f"frames[{i}]")
                     rgb[o:o + n, j] = img
                     total += img.sum(0, dtype=torch.float64)
+                    if hist is not None:
+                        hist += torch.stack([torch.bincount(img[:, c].long(), minlength=256) for c in range(3)])
                     if bright is not None:
                         bright[o:o + n] = torch.maximum(bright[o:o + n], img.amax(1))
-                    if bg is not None:
+                    if bg is not None and bg_code is not None:  # linear background and tolerance
+                        bg[o:o + n] &= bg_code[img.long()].all(1)
+                    elif bg is not None:
                         bg[o:o + n] &= (img.to(torch.int16) - bgv).abs().amax(1) <= tol
                 else:
                     rgb[o:o + n, j] = rgb[o:o + n, j % len(g)]
@@ -111,7 +120,7 @@ class ShotBank:
                 m = scene.mask(self.frames[g[0]])
                 masks.append(None if m is None else torch.from_numpy((np.clip(m, 0, 1) * 255).astype(np.uint8).reshape(-1)))
         n_real = sum(len(g) * int(npx[v]) for v, g in enumerate(self.groups))  # real (not repeated) shots
-        self._mean = (total / (255.0 * n_real)).float()
+        self._mean = (total / (255.0 * n_real)).float() if hist is None else lut_mean(hist, self.lut, n_real)
         self.rgb = rgb.to(self.device)                                           # [N, kmax, 3] uint8
         self.has_masks = load_masks and all(m is not None for m in masks)
         self.mask = torch.cat(masks).to(self.device) if self.has_masks else None  # [N] uint8
@@ -145,7 +154,8 @@ class ShotBank:
 
         Returns:
             dict: fidx [n, k] int32 (rows of the projection table = positions in ``frames``),
-            origins [n, 3], dirs [n, 3], rgb [n, k, 3] float in [0, 1], mask [n] (if masks),
+            origins [n, 3], dirs [n, 3], rgb [n, k, 3] float in [0, 1] (linear), sat [n, k, 3] bool
+            (saturated photo channels), mask [n] (if masks),
             bg [n] (if ``background``), pix [n] int64 flat view-pixel index.
         """
         g = generator
@@ -156,8 +166,9 @@ class ShotBank:
         else:  # k distinct-in-expectation shots among the view's own
             u = torch.rand(n, self.k, device=self.device, generator=g)
             slot = (u * self.n_shots[view][:, None]).long().clamp_max(self.rgb.shape[1] - 1)
-        out = {"fidx": self.shot_row[view[:, None], slot], "origins": o, "dirs": d,
-               "rgb": self.rgb[flat[:, None], slot].float() / 255.0, "pix": flat}
+        u8 = self.rgb[flat[:, None], slot]
+        out = {"fidx": self.shot_row[view[:, None], slot], "origins": o, "dirs": d, "rgb": to_linear(u8, self.lut),
+               "sat": u8 >= SATURATED, "pix": flat}
         if self.mask is not None:
             out["mask"] = self.mask[flat].float() / 255.0
         if self.bg is not None:

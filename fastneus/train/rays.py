@@ -16,6 +16,18 @@ from fastneus.errors import FastneusError
 from fastneus.kernels.render import PatternStore
 from fastneus.data.kinds import get_projector_kind, projector_kinds
 
+SATURATED = 254  # a photo channel at or above this code is (probably) clipped by the camera
+
+
+def background_codes(lut: torch.Tensor, background: float, tol: float) -> torch.Tensor:
+    """[256] bool: the 8-bit codes whose decoded (linear) value is within ``tol`` of ``background``."""
+    return (lut - float(background)).abs() <= float(tol) + 1e-7
+
+
+def lut_mean(hist: torch.Tensor, lut: torch.Tensor, n: int) -> torch.Tensor:
+    """[3] mean decoded colour from per-channel code histograms ``hist`` [3, 256] of ``n`` pixels."""
+    return ((hist.double() @ lut.double().cpu()) / max(1, n)).float()
+
 
 def normalised_camera(scene, i: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(K^-1 [3,3], R_c2w [3,3], origin [3] in normalised space) of frame i."""
@@ -127,12 +139,17 @@ class RayBank:
             value in [0, 1] (``self.bg``, [sum HW] bool; ``self.bg_fraction`` their share).
         refraction: cameras with a flat port (underwater housing) cast refracted rays that start
             on the port's outer face; False treats every camera as a pinhole in one medium.
+        lut: [256] decoded (linear) value of each 8-bit code (``fastneus.data.response.decode_lut``):
+            ``sample`` returns colours through it, ``mean_rgb`` and background flags use it.
+            None = the photos are linear (code / 255).
     """
 
     def __init__(self, scene, frames: list[int], device, load_masks: bool = False, brightness_cdf: bool = False,
-                 background: float | None = None, bg_tolerance: float = 2.0 / 255, refraction: bool = True):
+                 background: float | None = None, bg_tolerance: float = 2.0 / 255, refraction: bool = True,
+                 lut=None):
         self.frames = list(frames)
         self.device = torch.device(device)
+        self.lut = None if lut is None else torch.as_tensor(lut, dtype=torch.float32, device=self.device)  # [256]
         sizes, kinv, rot, org, chunks, masks = [], [], [], [], [], []
         for i in self.frames:
             img = scene.image(i)
@@ -164,7 +181,10 @@ class RayBank:
             self.port = torch.tensor([p.row() if p is not None else [0.0] * 8 for p in ports], **f32)
             self.radius = float(scene.bounds.radius)
         self.bg, self.bg_fraction = None, 0.0
-        if background is not None:
+        if background is not None and self.lut is not None:  # background and tolerance are linear values
+            self.bg = background_codes(self.lut, background, bg_tolerance)[self.rgb.long()].all(dim=1)
+            self.bg_fraction = float(self.bg.float().mean())
+        elif background is not None:
             diff = (self.rgb.to(torch.int16) - int(round(255 * background))).abs().amax(dim=1)
             self.bg = diff <= int(round(255 * bg_tolerance))                   # [sum HW] bool
             self.bg_fraction = float(self.bg.float().mean())
@@ -189,7 +209,10 @@ class RayBank:
         return [str(scene.path(scene.frames[self.frames[a]].mask)) for a in empty]
 
     def mean_rgb(self, chunk: int = 1 << 22) -> torch.Tensor:
-        """[3] mean pixel colour in [0, 1], summed in chunks (no float copy of the whole store)."""
+        """[3] mean pixel colour in [0, 1] (linear), summed in chunks (no float copy of the whole store)."""
+        if self.lut is not None:  # through the response: per-channel code histograms
+            hist = torch.stack([torch.bincount(self.rgb[:, c].long(), minlength=256) for c in range(3)]).cpu()
+            return lut_mean(hist, self.lut, self.n_pixels).to(self.device)
         tot = torch.zeros(3, dtype=torch.float64, device=self.device)
         for a in range(0, self.n_pixels, chunk):
             tot += self.rgb[a:a + chunk].sum(0, dtype=torch.float64)
@@ -237,14 +260,16 @@ class RayBank:
         ``bright_fraction`` share drawn in proportion to pixel brightness (needs ``brightness_cdf``).
 
         Returns:
-            dict: fidx [n] int32, origins [n, 3], dirs [n, 3], rgb [n, 3] float in [0, 1],
+            dict: fidx [n] int32, origins [n, 3], dirs [n, 3], rgb [n, 3] float in [0, 1] (linear:
+            through ``lut``), sat [n, 3] bool (the photo's channel is >= :data:`SATURATED`),
             mask [n] float (if masks), bg [n] float 1/0 (if ``background`` was given),
             pix [n] int64 flat pixel index.
         """
         flat, fidx, col, row = draw_pixels(self, n, generator, bright_fraction)
         o, d = self.rays(fidx, col.float() + 0.5, row.float() + 0.5)
-        out = {"fidx": fidx.to(torch.int32), "origins": o, "dirs": d,
-               "rgb": self.rgb[flat].float() / 255.0, "pix": flat}
+        u8 = self.rgb[flat]
+        out = {"fidx": fidx.to(torch.int32), "origins": o, "dirs": d, "rgb": to_linear(u8, self.lut),
+               "sat": u8 >= SATURATED, "pix": flat}
         if self.mask is not None:
             out["mask"] = self.mask[flat].float() / 255.0
         if self.bg is not None:
@@ -264,6 +289,11 @@ class RayBank:
         w, h = (int(x) for x in self.wh[a].tolist())
         off = int(self.offset[a])
         return self.rgb[off:off + w * h].reshape(h, w, 3)
+
+
+def to_linear(u8: torch.Tensor, lut: torch.Tensor | None) -> torch.Tensor:
+    """uint8 photo values (any shape) -> float linear values: ``lut[u8]``, or ``u8 / 255`` without one."""
+    return u8.float() / 255.0 if lut is None else lut[u8.long()]
 
 
 def draw_pixels(bank, n: int, generator: torch.Generator | None, bright_fraction: float):

@@ -28,6 +28,7 @@ from fastneus.train.rig import Rig
 from fastneus.train.rig import load_into as rig_load
 from fastneus.train.rig import state_of as rig_state
 from fastneus.train.rays import build_projection
+from fastneus.data.response import decode_lut, is_identity, resolve_response
 
 
 PLAIN_EVERY_S = 5.0  # seconds between progress lines when stdout is not a terminal
@@ -117,11 +118,14 @@ class Trainer:
             raise FastneusError(f"frame indices {bad or '[]'} out of range 0..{n - 1}", field="frames")
         self.masks_used, self.masks_note = resolve_masks(scene, self.frames, cfg)
         want_bg = not self.masks_used and cfg.loss.bg_prior != "off" and cfg.loss.bg_weight > 0
+        # photos -> linear light through a 256-entry table in the bank: the model, i_r, i_b are linear
+        self.response, self.response_note = resolve_response(scene, self.frames, cfg.illum.response)
         # multi-shot viewpoints (e.g. Gray code) share one ray per pixel across their shots (fastneus.train.multishot)
         self.bank = make_bank(scene, self.frames, self.device, cfg, load_masks=self.masks_used,
                               brightness_cdf=cfg.rays.bright_fraction > 0,
                               background=cfg.rays.background if want_bg else None, bg_tolerance=cfg.loss.bg_tolerance,
-                              refraction=cfg.rig.refraction)
+                              refraction=cfg.rig.refraction,
+                              lut=None if is_identity(self.response) else decode_lut(self.response))
         if getattr(self.bank, "empty_masks", None):  # all-zero masks: the object is outside those views (or a wrong file)
             self.masks_note += f"; warning: empty (all-zero) mask {', '.join(self.bank.empty_masks)}"
         self.bg_used, self.bg_note = resolve_bg_prior(cfg, self.masks_used, self.bank.bg_fraction)
@@ -148,6 +152,12 @@ class Trainer:
         self.log_ib = torch.nn.Parameter(torch.tensor([math.log(max(ib0, 1e-4))], device=self.device))
         groups = self.field.param_groups(cfg.optim) + [
             {"params": [self.log_ir, self.log_ib], "lr": cfg.optim.lr_illum, "name": "illum"}] + self.rig.param_groups()
+        # per-photo exposure gain (auto-exposure): a log-gain per training frame but the first (gain 1:
+        # it fixes the scale that i_r, i_b and the colours share)
+        self.log_gain = None
+        if cfg.illum.exposure and len(self.frames) > 1:
+            self.log_gain = torch.nn.Parameter(torch.zeros(len(self.frames) - 1, device=self.device))  # [F-1]
+            groups.append({"params": [self.log_gain], "lr": cfg.illum.lr_exposure, "name": "exposure"})
         for g in groups:
             g["base_lr"] = g["lr"]
         self.opt = Adam(groups, betas=(0.9, 0.99), eps=cfg.optim.adam_eps)  # torch.optim's would import TorchDynamo (4 s)
@@ -272,8 +282,12 @@ class Trainer:
         # the camera clips at 1: a rendered value above it is a saturated pixel, not an error
         # (unclipped, bright pattern pixels would pull i_r down on Normal-light scenes)
         # [B, 3], or [B, K, 3] with K shots per ray (multi-shot); + water (fastneus.train.rig)
-        pred = self.rig.composite(out["color"], out, c.rays.background).clamp(max=1.0)
-        terms = losses.photometric(pred, batch["rgb"])
+        pred = self.rig.composite(out["color"], out, c.rays.background)
+        if self.log_gain is not None:  # the photo's exposure gain, before the camera clips
+            pred = pred * losses.exposure_gain(self.log_gain, batch["fidx"])
+        pred = pred.clamp(max=1.0)
+        terms = losses.photometric(pred, batch["rgb"], c.loss.robust, c.loss.robust_eps, batch.get("sat"),
+                                   c.loss.saturated)
         # eikonal on the samples plus the uniform points (evaluated with them in render_rays)
         terms |= losses.eikonal(out["grad_all"], c.loss.eikonal_weight)
         if self.masks_used and "mask" in batch:
@@ -421,6 +435,7 @@ class Trainer:
         return {"step": self.step, "elapsed": self.elapsed, "n_rays": self.n_rays, "skipped": self.skipped,
                 "config": self.cfg.to_dict(), "field": self.field.state_dict(), "grid": self.grid.state_dict(),
                 "log_ir": self.log_ir.detach().cpu(), "log_ib": self.log_ib.detach().cpu(),
+                **({"log_gain": self.log_gain.detach().cpu()} if self.log_gain is not None else {}),
                 "optimizer": self.opt.state_dict(), "frames": self.frames, "rig": rig_state(self.rig),
                 "gen": self.gen.get_state().cpu()}
 
@@ -438,12 +453,18 @@ class Trainer:
         with torch.no_grad():
             self.log_ir.copy_(st["log_ir"].to(self.device))
             self.log_ib.copy_(st["log_ib"].to(self.device))
+            if self.log_gain is not None and "log_gain" in st:
+                self.log_gain.copy_(st["log_gain"].to(self.device))
         rig_load(self.rig, st.get("rig"))
         self.step, self.elapsed = int(st["step"]), float(st.get("elapsed", 0.0))
         self.n_rays, self.skipped = int(st.get("n_rays", self.n_rays)), int(st.get("skipped", 0))
         self.field.set_progress(self.progress())
         if with_optimizer:
+            groups = self.opt.param_groups
+            if self.log_gain is not None and "log_gain" not in st:  # saved before per-photo exposure: gains 1
+                self.opt.param_groups = [g for g in groups if g["name"] != "exposure"]
             self.opt.load_state_dict(st["optimizer"])
+            self.opt.param_groups = groups
             for g in self.opt.param_groups:  # base_lr may differ if the config changed
                 g["base_lr"] = {"geometry": self.cfg.optim.lr, "color": self.cfg.optim.lr, "variance": self.cfg.optim.lr_variance,
                                 "illum": self.cfg.optim.lr_illum}.get(g["name"], g["base_lr"])
