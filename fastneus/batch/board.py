@@ -59,9 +59,12 @@ class Board:
 
         t = Table(title=None, show_lines=False)
         for col in ("scene", "state", "worker", "steps", "time", "Chamfer mm"):
-            t.add_column(col, no_wrap=True, justify="right" if col in ("steps", "time", "Chamfer mm") else "left")
+            t.add_column(col, no_wrap=True, min_width=min(24, max([len(col)] + [len(j.name) for j in self.jobs]))
+                         if col == "scene" else len(col) if col != "state" else 11,
+                         justify="right" if col in ("steps", "time", "Chamfer mm") else "left")
+        errors = errors and self.console.width >= 120  # a narrow terminal: the errors follow the table in full
         if errors:
-            t.add_column("error", overflow="fold")
+            t.add_column("error", no_wrap=True, overflow="ellipsis", max_width=self.console.width - 95)
         for j in self.jobs:
             row = [j.name, f"[{STYLE.get(_state(j), '')}]{_state(j)}[/]", j.worker or "-", _steps(j), _time(j),
                    _chamfer(j)]
@@ -112,10 +115,9 @@ class Board:
             self.console.print(self.table(errors=False))
         counts = count_states(self.jobs)
         self._say("batch: " + ", ".join(f"{n} {s}" for s, n in counts.items() if n))
-        if self.plain:
-            for j in self.jobs:
-                if j.error:
-                    self._say(f"  {j.name} ({j.state}): {j.error}")
+        for j in self.jobs:
+            if j.error:
+                self._say(f"  {j.name} ({j.state}): {j.error}")
 
 
 def count_states(jobs: list[Job]) -> dict:
