@@ -26,7 +26,7 @@ from fastneus.train.checkpoint import CKPT_NAME
 # everything a run writes into its folder (pipeline.train_scene / finish_run, Trainer.fit / save)
 RUN_FILES = (CKPT_NAME, "config.yaml", "run.json", "log.jsonl", "metrics.json", "illumination.json",
              "report.html", "mesh.ply", "rig.json")
-RUN_DIRS = ("renders",)
+RUN_DIRS = ("renders", "validation", "tensorboard")  # validation/, tensorboard/: fastneus.train.progress
 RUN_MARK = ".fastneus-run.json"      # "fastneus wrote the run files here": --overwrite may replace them
 LOCK_NAME = ".fastneus.lock"         # flock held by the process writing the run (holds its pid)
 ASIDE = ".fastneus-previous"         # the previous run during --overwrite, until the first checkpoint
@@ -213,12 +213,13 @@ def recover(out: Path) -> None:
 
 def remove_stale_temps(out: Path) -> None:
     """Delete the temp files of fastneus's own atomic writes (``.<name>.XXXX``) that a kill left behind
-    in ``out`` and ``out/renders``. Call under :func:`run_lock` (no writer is active)."""
+    in ``out``, ``out/renders`` and ``out/validation``. Call under :func:`run_lock` (no writer is active)."""
     prefixes = tuple(f".{n}." for n in RUN_FILES + (RUN_MARK,))
     folders = [(Path(out), lambda n: n.startswith(prefixes))]
-    renders = Path(out) / "renders"
-    if renders.is_dir() and not renders.is_symlink():
-        folders.append((renders, lambda n: n.startswith(".") and ".png." in n))
+    for name in ("renders", "validation"):
+        sub = Path(out) / name
+        if sub.is_dir() and not sub.is_symlink():
+            folders.append((sub, lambda n: n.startswith(".") and ".png." in n))
     for folder, ours in folders:
         for e in os.scandir(folder):
             if ours(e.name) and e.is_file(follow_symlinks=False):
