@@ -44,11 +44,15 @@ def parse_args(argv=None):
 def make_scenes(args) -> list[Path]:
     if args.scene_dirs:
         return [Path(d).resolve() for d in args.scene_dirs]
+    import torch
+
     w, h = (int(x) for x in args.size.lower().split("x"))
+    # rendered on the GPU when there is one (a GPU machine may have no CPU compiler for Warp)
+    dev = "cuda" if torch.cuda.is_available() and any(e != "cpu" for e in args.gpus) else "cpu"
     out = []
     for i in range(args.scenes):
         path = args.work / "scenes" / f"{args.shape}-{args.views}v-{w}x{h}-s{i:02d}"
-        cached_scene(path, shape=args.shape, views=args.views, size=(w, h), seed=i, contact_sheet=False)
+        cached_scene(path, shape=args.shape, views=args.views, size=(w, h), seed=i, contact_sheet=False, device=dev)
         out.append(path.resolve())
     return out
 
