@@ -65,8 +65,20 @@ def test_time_trigger_and_force(small_scene, tmp_path, no_tensorboard):
     assert pw.maybe_validate(6, 21.5, force=True).name == "step_000006.png"
     img = cv2.imread(str(pw.written[-1]))
     assert img.shape == (CAPTION_PX + 16, 3 * 16 + 4, 3)  # 24x24 shrunk to 16x16 panels
+    assert pw.finish(6, 21.5) is None  # the last one is already at this step
+    assert pw.finish(7, 22.0).name == "step_000007.png"
     off = ProgressWriter(tr, every_s=0, every_steps=0)
-    assert off.maybe_validate(100, 1e6) is None
+    assert off.maybe_validate(100, 1e6) is None and off.finish(100, 1e6) is None and not off.enabled
+
+
+def test_intervals_count_from_where_a_resumed_run_stands(small_scene, tmp_path, no_tensorboard):
+    tr = _trainer(small_scene, tmp_path / "run")
+    tr.step, tr.elapsed = 100, 500.0  # as after --resume from a checkpoint
+    pw = ProgressWriter(tr, every_s=60.0, every_steps=0, size=16)
+    assert pw.maybe_validate(101, 505.0) is None
+    assert pw.maybe_validate(102, 560.5).name == "step_000102.png"
+    ps = ProgressWriter(tr, every_s=0, every_steps=10, size=16)
+    assert ps.maybe_validate(105, 501.0) is None and ps.maybe_validate(110, 502.0) is not None
 
 
 def test_validation_does_not_change_training(small_scene, tmp_path, no_tensorboard):

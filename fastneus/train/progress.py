@@ -96,8 +96,9 @@ class ProgressWriter:
         if not 0 <= self.frame < len(trainer.scene.frames):
             raise FastneusError(f"frame {self.frame} out of range 0..{len(trainer.scene.frames) - 1}",
                                 field="validate_frame")
-        self.last_s: float | None = None      # training seconds at the last validation
-        self.last_step: int | None = None
+        # intervals count from where the trainer stands (0 for a new run, the checkpoint's on --resume)
+        self.last_s = float(getattr(trainer, "elapsed", 0.0))  # training seconds at the last validation
+        self.last_step = int(getattr(trainer, "step", 0))
         self.written: list[Path] = []         # validation images, in order
         self._bank = None                     # (RayBank, projection) of the frame when poses are fixed
         self.tb = None
@@ -132,10 +133,13 @@ class ProgressWriter:
             self.tb.add_scalar("train/seconds", record["time"], step)
 
     # ------------------------------------------------------------------ validation renders
+    @property
+    def enabled(self) -> bool:
+        """Whether validation renders are on (a time or a step interval is set)."""
+        return self.every_s > 0 or self.every_steps > 0
+
     def due(self, step: int, elapsed_s: float) -> bool:
         """Whether a validation render is due at ``step`` after ``elapsed_s`` seconds of training."""
-        if self.last_s is None:  # the first one comes after one interval, not at step 0
-            self.last_s, self.last_step = 0.0, 0
         if self.every_s > 0 and elapsed_s - self.last_s >= self.every_s:
             return True
         return self.every_steps > 0 and step - self.last_step >= self.every_steps
@@ -224,6 +228,15 @@ class ProgressWriter:
         bar = np.full((CAPTION_PX, img.shape[1], 3), 255, np.uint8)
         cv2.putText(bar, text, (3, CAPTION_PX - 4), cv2.FONT_HERSHEY_SIMPLEX, 0.33, (0, 0, 0), 1, cv2.LINE_AA)
         return np.concatenate([bar, img], axis=0)
+
+    def finish(self, step: int, elapsed_s: float) -> Path | None:
+        """End of training: a last validation render (when validation is on and none was made at
+        this step), then :meth:`close`. Returns the image written, if any."""
+        path = None
+        if self.enabled and not (self.written and self.last_step == step):
+            path = self.maybe_validate(step, elapsed_s, force=True)
+        self.close()
+        return path
 
     def close(self) -> None:
         """Flush and close the TensorBoard writer (validation images are complete when written)."""
