@@ -187,8 +187,8 @@ class IllumSection:
     illum_init: str = knob("scene", "start i_r, i_b at the scene's values | ones", choices=("scene", "ones"))
     response: str = knob("auto", "camera response the photos are decoded with: auto (scene.json, else the "
                          "files' tags, else srgb) | linear | srgb | gamma=G")
-    exposure: bool = knob(True, "learn a gain per photo (auto-exposure); the first training frame's is 1",
-                          model=True)
+    exposure: bool = knob(False, "learn a gain per photo (auto-exposure; the first training frame's is 1); off by "
+                          "default: it cost accuracy on CPU tiny scenes, docs/benchmarks/realistic-cpu.md", model=True)
     lr_exposure: float = knob(1e-2, "learning rate of the per-photo log-gains", lo=0.0)
 
 

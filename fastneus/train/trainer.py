@@ -225,6 +225,8 @@ class Trainer:
                 # decays with the rest: a constant Adam step of lr_illum on log(i) would leave i_r, i_b
                 # jittering by ~lr_illum (3%) at the end of the run
                 g["lr"] = g["base_lr"] * decay if learn_illum else 0.0
+            elif g["name"] == "exposure":  # per-photo gains wait for a surface to compare photos on
+                g["lr"] = g["base_lr"] * decay if p >= c.illum.illum_warmup_frac else 0.0
             elif g["name"].startswith("rig_"):  # own warm-up, then the common decay
                 g["lr"] = g["base_lr"] * decay * self.rig.lr_gate(g["name"], p)
             elif frozen and g["name"] in ("geometry", "variance"):
