@@ -1,7 +1,7 @@
-"""Quality matrix: the default run on {shapes} x {Normal, Dark} x {masks, no masks} x {budgets}.
+"""Quality matrix: the default run on {shapes} x {Normal, Dark} x {captures} x {masks, no masks} x {budgets}.
 
     python scripts/quality.py [--device cuda|cpu] [--shapes bunny,rock,toy,bear] [--illums normal,dark]
-                              [--masks on,off] [--budgets 5,10,20,60] [--size 200] [--views 20]
+                              [--captures ideal,realistic] [--masks on,off] [--budgets 5,10,20,60] [--size 200] [--views 20]
                               [--out DIR] [--tag NAME] [--report-from A.jsonl,B.jsonl] [--no-md]
                               [--variants "name:k=v k=v;name2:k=v"] [key=value ...]
 
@@ -16,6 +16,9 @@ views of ``--size`` px, object ~2 m across at 4 m; shapes:
   (both converted once by ``scripts/assets.py`` into ``scripts/.assets``);
 - ``rock``: a procedural scanned-stone-like surface (``fastneus synth --shape rock``);
 - ``toy``: the built-in composite (cup, 2-cm fin, torus, sphere).
+
+Captures: ``ideal`` (the linear image model, quantised) and ``realistic`` (``fastneus synth
+--realistic``: sRGB, +-25% exposure, speckle, highlights, defocus, vignetting, noise, saturation).
 
 Metrics (mm; F-score at 1% of the GT bounding-box diagonal): Chamfer GT->rec (the paper's
 number), the same with the paper's 1-sigma filter, rec->GT (floaters show here), symmetric,
@@ -40,24 +43,27 @@ from benchutil import (ROOT, cached_scene, command_line, default_preset, md_tabl
 ASSETS = Path(__file__).resolve().parent / ".assets"
 BUILTIN = ("rock", "toy", "torus", "sphere")
 METRICS = ["chamfer_gt2rec_mm", "chamfer_gt2rec_filtered_mm", "chamfer_rec2gt_mm", "chamfer_sym_mm", "fscore",
-           "i_r_err", "i_b_err", "psnr_texture"]
+           "i_r_err", "i_b_err", "psnr_texture", "exposure_err"]
 SHORT = {"chamfer_gt2rec_mm": "GT->rec", "chamfer_gt2rec_filtered_mm": "1-sigma", "chamfer_rec2gt_mm": "rec->GT",
          "chamfer_sym_mm": "sym", "fscore": "F", "i_r_err": "i_r err", "i_b_err": "i_b err",
-         "psnr_texture": "tex PSNR"}
+         "psnr_texture": "tex PSNR", "exposure_err": "gain err"}
 
 
-def scene_dir(cache: Path, shape: str, illum: str, views: int, size: int) -> Path:
-    return cache / f"{shape}-{illum}{views}-{size}"
+def scene_dir(cache: Path, shape: str, illum: str, views: int, size: int, capture: str = "ideal") -> Path:
+    return cache / f"{shape}-{illum}{views}-{size}{'' if capture == 'ideal' else '-' + capture}"
 
 
-def make_scene(cache: Path, shape: str, illum: str, views: int, size: int, device: str, assets: Path):
+def make_scene(cache: Path, shape: str, illum: str, views: int, size: int, device: str, assets: Path,
+               capture: str = "ideal"):
     """Synthesise (once) and load a matrix scene."""
-    d = scene_dir(cache, shape, illum, views, size)
+    if capture not in ("ideal", "realistic"):
+        raise SystemExit(f"--captures: unknown capture {capture!r}; use ideal, realistic")
+    d = scene_dir(cache, shape, illum, views, size, capture)
     src = dict(shape=shape) if shape in BUILTIN else dict(mesh=assets / f"{shape}.ply")
     if not (d / "scene.json").is_file() and "mesh" in src and not src["mesh"].is_file():
         raise SystemExit(f"{src['mesh']}: missing; run `python scripts/assets.py` once (needs usd-core)")
     return cached_scene(d, views=views, size=(size, size), illum=illum, pattern="crosslaser", seed=0, device=device,
-                        contact_sheet=True, **src)
+                        contact_sheet=True, realistic=capture == "realistic", **src)
 
 
 def run_cell(scene, device: str, budget: float, masks: str, extra: list[str], out: Path) -> dict:
@@ -78,35 +84,43 @@ def summarise(rows: list[dict], budgets: list[float]) -> tuple[str, dict]:
     """Markdown tables (one per metric group) and a dict of the target checks."""
     for r in rows:
         r.setdefault("variant", "default")
-    rows = sorted(rows, key=lambda r: (r["variant"], r["shape"], r["illum"], r["masks"], r["budget"]))
+        r.setdefault("capture", "ideal")
+    rows = sorted(rows, key=lambda r: (r["variant"], r["shape"], r["illum"], r["capture"], r["masks"], r["budget"]))
     multi = len({r["variant"] for r in rows}) > 1
-    lead = (["variant"] if multi else []) + ["shape", "illum", "masks"]
+    lead = (["variant"] if multi else []) + ["shape", "illum"] + \
+        (["capture"] if len({r["capture"] for r in rows}) > 1 else []) + ["masks"]
     full = md_table([{**r, **{SHORT.get(k, k): r.get(k) for k in METRICS}} for r in rows],
                     lead + ["budget", "steps"] + [SHORT[k] for k in METRICS])
     # symmetric Chamfer as a compact grid: one row per (shape, illum, masks), one column per budget
     grid_rows = {}
     for r in rows:
-        key = (r["variant"], r["shape"], r["illum"], r["masks"])
-        g = grid_rows.setdefault(key, {"variant": key[0], "shape": key[1], "illum": key[2], "masks": key[3]})
+        key = (r["variant"], r["shape"], r["illum"], r["capture"], r["masks"])
+        g = grid_rows.setdefault(key, {"variant": key[0], "shape": key[1], "illum": key[2], "capture": key[3],
+                                       "masks": key[4]})
         g[f"{r['budget']:g} s"] = r.get("chamfer_sym_mm")
         g[f"F {r['budget']:g} s"] = r.get("fscore")
     bcols = [f"{b:g} s" for b in budgets] + [f"F {b:g} s" for b in budgets]
     grid = md_table(list(grid_rows.values()), lead + bcols)
     checks = {}
-    by = {(r["variant"], r["shape"], r["illum"], r["masks"], r["budget"]): r for r in rows}
-    ratios_floater, ratios_nomask = [], []
-    for (v, s, il, mk, b), r in by.items():
+    by = {(r["variant"], r["shape"], r["illum"], r["capture"], r["masks"], r["budget"]): r for r in rows}
+    ratios_floater, ratios_nomask, ratios_real = [], [], []
+    for (v, s, il, cp, mk, b), r in by.items():
+        ideal = by.get((v, s, il, "ideal", mk, b))
+        if cp == "realistic" and ideal and ideal.get("chamfer_sym_mm") and r.get("chamfer_sym_mm"):
+            ratios_real.append(r["chamfer_sym_mm"] / ideal["chamfer_sym_mm"])
         if mk == "off" and r.get("chamfer_gt2rec_mm"):
             ratios_floater.append(r["chamfer_rec2gt_mm"] / r["chamfer_gt2rec_mm"])
-            on = by.get((v, s, il, "on", b))
+            on = by.get((v, s, il, cp, "on", b))
             if on and on.get("chamfer_sym_mm"):
                 ratios_nomask.append(r["chamfer_sym_mm"] / on["chamfer_sym_mm"])
     if ratios_floater:
         checks["no-mask rec->GT / GT->rec (max, median)"] = (max(ratios_floater), median(ratios_floater))
     if ratios_nomask:
         checks["no-mask sym / masked sym (max, median)"] = (max(ratios_nomask), median(ratios_nomask))
+    if ratios_real:
+        checks["realistic sym / ideal sym (max, median)"] = (max(ratios_real), median(ratios_real))
     mono = []
-    for key in {(r["variant"], r["shape"], r["illum"], r["masks"]) for r in rows}:
+    for key in {(r["variant"], r["shape"], r["illum"], r["capture"], r["masks"]) for r in rows}:
         seq = [by[key + (b,)]["chamfer_sym_mm"] for b in budgets if key + (b,) in by]
         mono.append(all(seq[i + 1] <= seq[i] * 1.0001 for i in range(len(seq) - 1)))
     checks["cells with sym Chamfer non-increasing over budgets"] = f"{sum(mono)}/{len(mono)}"
@@ -119,6 +133,7 @@ def main() -> None:
     ap.add_argument("--shapes", default="bunny,rock,toy,bear")
     ap.add_argument("--illums", default="normal,dark")
     ap.add_argument("--masks", default="on,off")
+    ap.add_argument("--captures", default="ideal", help="ideal, realistic (synth --realistic), or both")
     ap.add_argument("--budgets", default=None, help="seconds (default 5,10,20,60 on GPU, 30,60,120 on CPU)")
     ap.add_argument("--size", type=int, default=200)
     ap.add_argument("--views", type=int, default=20)
@@ -158,23 +173,27 @@ def main() -> None:
         if jsonl.is_file():
             for line in jsonl.read_text().splitlines():
                 r = json.loads(line)
-                done.add((r.get("variant", "default"), r["shape"], r["illum"], r["masks"], r["budget"]))
+                done.add((r.get("variant", "default"), r["shape"], r["illum"], r.get("capture", "ideal"), r["masks"],
+                          r["budget"]))
         for shape in args.shapes.split(","):
             for illum in args.illums.split(","):
-                scene = make_scene(Path(args.cache), shape, illum, args.views, args.size, args.device,
-                                   Path(args.assets))
-                for masks in args.masks.split(","):
-                    for b in budgets:
-                        for vname, vov in variants.items():
-                            if (vname, shape, illum, masks, b) in done:
-                                continue
-                            run = out / "runs" / f"{tag}-{vname}-{shape}-{illum}-m{masks}-{b:g}s"
-                            ov = list(args.overrides) + vov
-                            r = run_cell(scene, args.device, b, masks, ov, run)
-                            r.update(variant=vname, shape=shape, illum=illum, masks=masks, budget=b, overrides=ov)
-                            print(json.dumps(r), flush=True)
-                            with open(jsonl, "a") as f:
-                                f.write(json.dumps(r) + "\n")
+                for cap in args.captures.split(","):
+                    scene = make_scene(Path(args.cache), shape, illum, args.views, args.size, args.device,
+                                       Path(args.assets), cap)
+                    for masks in args.masks.split(","):
+                        for b in budgets:
+                            for vname, vov in variants.items():
+                                if (vname, shape, illum, cap, masks, b) in done:
+                                    continue
+                                cname = "" if cap == "ideal" else f"-{cap}"
+                                run = out / "runs" / f"{tag}-{vname}-{shape}-{illum}{cname}-m{masks}-{b:g}s"
+                                ov = list(args.overrides) + vov
+                                r = run_cell(scene, args.device, b, masks, ov, run)
+                                r.update(variant=vname, shape=shape, illum=illum, capture=cap, masks=masks, budget=b,
+                                         overrides=ov)
+                                print(json.dumps(r), flush=True)
+                                with open(jsonl, "a") as f:
+                                    f.write(json.dumps(r) + "\n")
         rows = [json.loads(line) for line in jsonl.read_text().splitlines() if line.strip()]
     budgets_seen = sorted({r["budget"] for r in rows})
     text, checks = summarise(rows, budgets_seen)
