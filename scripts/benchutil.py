@@ -60,6 +60,10 @@ def machine(device: str) -> str:
 
 
 def git_rev() -> str:
+    """Short commit of the code measured: ``FASTNEUS_COMMIT`` when set (a copy sent to a GPU
+    machine without its ``.git``: git would answer for whatever repository encloses it)."""
+    if os.environ.get("FASTNEUS_COMMIT"):
+        return os.environ["FASTNEUS_COMMIT"]
     try:
         return subprocess.check_output(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, text=True).strip()
     except Exception:  # noqa: BLE001
