@@ -20,7 +20,21 @@ def _trainer(small_scene, tmp_path, device, name):
     from fastneus.train.trainer import Trainer
 
     cfg = load_config("cpu-quick", SMALL_RUN + ["threads=1", "init_geometry=sphere"])
-    return Trainer(Scene.load(small_scene), cfg, tmp_path / name, device)
+    return Trainer(Scene.load(_scene_for(small_scene, tmp_path, device)), cfg, tmp_path / name, device)
+
+
+def _scene_for(small_scene, tmp_path, device):
+    """The shared CPU-rendered scene, or on CUDA the same scene rendered on the GPU (a GPU
+    machine may have no CPU compiler for Warp)."""
+    if device == "cpu":
+        return small_scene
+    path = tmp_path / "sphere3-cuda"
+    if not (path / "scene.json").is_file():
+        from fastneus.synth.render import synthesize
+
+        synthesize(path, shape="sphere", views=3, size=(24, 24), pattern="crosslaser", illum="normal", seed=0,
+                   device=device, proj_size=(64, 48), progress=False, contact_sheet=False)
+    return path
 
 
 def _params(tr):
@@ -28,10 +42,11 @@ def _params(tr):
 
 
 @pytest.mark.parametrize("device", DEVICES)
-def test_gated_guard_matches_the_host_guard(small_scene, tmp_path, device):
+def test_gated_guard_matches_the_host_guard(request, tmp_path, device):
     """Three steps with the device-gated guard and three with the host-checked one, from the
     same state and random streams: same losses and parameters (to rounding); then a NaN loss
     is skipped by both without moving a parameter, and counted."""
+    small_scene = request.getfixturevalue("small_scene") if device == "cpu" else None
     a = _trainer(small_scene, tmp_path, device, "a")
     b = _trainer(small_scene, tmp_path, device, "b")
     b.field.load_state_dict(a.field.state_dict())
@@ -62,9 +77,10 @@ def test_gated_guard_matches_the_host_guard(small_scene, tmp_path, device):
 
 
 @pytest.mark.parametrize("device", DEVICES)
-def test_eikonal_points_in_the_sample_call_match_a_separate_call(small_scene, tmp_path, device):
+def test_eikonal_points_in_the_sample_call_match_a_separate_call(request, tmp_path, device):
     from fastneus.field.renderer import render_rays
 
+    small_scene = request.getfixturevalue("small_scene") if device == "cpu" else None
     tr = _trainer(small_scene, tmp_path, device, "e")
     tr.train_step()
     c = tr.cfg
