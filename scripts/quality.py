@@ -41,7 +41,7 @@ from benchutil import (ROOT, cached_scene, command_line, default_preset, md_tabl
                        update_section, write_results)
 
 ASSETS = Path(__file__).resolve().parent / ".assets"
-BUILTIN = ("rock", "toy", "torus", "sphere")
+BUILTIN = ("rock", "toy", "torus", "sphere", "ant", "airplane", "hexnut")  # fastneus synth --shape
 METRICS = ["chamfer_gt2rec_mm", "chamfer_gt2rec_filtered_mm", "chamfer_rec2gt_mm", "chamfer_sym_mm", "fscore",
            "i_r_err", "i_b_err", "psnr_texture", "exposure_err"]
 SHORT = {"chamfer_gt2rec_mm": "GT->rec", "chamfer_gt2rec_filtered_mm": "1-sigma", "chamfer_rec2gt_mm": "rec->GT",
