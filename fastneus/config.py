@@ -73,6 +73,13 @@ class RunSection:
     frames: list[int] | None = knob(None, "frames to train on (null = all)", model=True)
     log_every: int = knob(50, "steps between log.jsonl records", lo=1)
     save_every: int = knob(1000, "checkpoint period in steps (the last step always saves)", lo=1)
+    validate_every: float = knob(60.0, "seconds of training between validation renders of one held frame "
+                                 "(photo | render | depth) into RUN/validation/; 0 = off (the last step "
+                                 "always writes one)", lo=0.0)
+    validate_every_steps: int = knob(0, "steps between validation renders (0 = off; with validate_every, "
+                                     "whichever comes first)", lo=0)
+    tensorboard: str = knob("auto", "TensorBoard event files in RUN/tensorboard/: auto = when the tensorboard "
+                            "package is installed (pip install 'fastneus[tensorboard]')", choices=("auto", "on", "off"))
 
 
 @dataclass(frozen=True)

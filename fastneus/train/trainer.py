@@ -24,6 +24,7 @@ from fastneus.train.adam import Adam
 from fastneus.train import losses
 from fastneus.train.guard import finite_flag, finite_step
 from fastneus.train.multishot import make_bank
+from fastneus.train.progress import ProgressWriter
 from fastneus.train.rig import Rig
 from fastneus.train.rig import load_into as rig_load
 from fastneus.train.rig import state_of as rig_state
@@ -347,6 +348,11 @@ class Trainer:
             if self.console is not None:
                 self.console.print(note)
         logf = open_append(self.out / "log.jsonl")  # never through a symbolic link
+        # validation renders (RUN/validation/) and, when installed, TensorBoard (RUN/tensorboard/); their
+        # time is kept out of the training clock
+        watch = ProgressWriter(self, every_s=c.run.validate_every, every_steps=c.run.validate_every_steps,
+                               tensorboard=c.run.tensorboard)
+        t_val = 0.0
         last = {}
         samples_total, t_window, steps_window = 0, time.perf_counter(), 0
         timed = c.run.time_budget > 0
@@ -389,6 +395,7 @@ class Trainer:
                         self.history.append(last)
                         logf.write(json.dumps(last) + "\n")
                         logf.flush()
+                        watch.on_log(self.step, last)
                         progress.update(task, info=(f"loss {last['loss']:.4f} psnr {last['psnr']:.1f} "
                                                     f"i_r {i_r:.3f} i_b {i_b:.3f} spr {last['samples_per_ray']:.0f} "
                                                     f"{last['it_s']:.1f} it/s"))
@@ -401,7 +408,14 @@ class Trainer:
                     t_save -= time.perf_counter()
                     self.save()
                     t_save += time.perf_counter()
+                if watch.due(self.step, self.elapsed):
+                    t_val -= time.perf_counter()
+                    watch.maybe_validate(self.step, self.elapsed, force=True)
+                    t_val += time.perf_counter()
         logf.close()
+        t_val -= time.perf_counter()
+        watch.finish(self.step, self.elapsed)
+        t_val += time.perf_counter()
         if final_save or self.stop_signal is not None:
             t_save -= time.perf_counter()
             self.save()
@@ -411,7 +425,8 @@ class Trainer:
             clock.add("kernels", t_kernels)
             clock.notes["kernels_compiled"] = kern.get("compiled", [])
             clock.add("checkpoint", t_save)
-            clock.add("train", time.perf_counter() - t_fit - t_kernels - t_save)
+            clock.add("validation", t_val)
+            clock.add("train", time.perf_counter() - t_fit - t_kernels - t_save - t_val)
         return last
 
     def prime(self, report: dict | None = None) -> float:
