@@ -73,6 +73,8 @@ class RunSection:
     frames: list[int] | None = knob(None, "frames to train on (null = all)", model=True)
     log_every: int = knob(50, "steps between log.jsonl records", lo=1)
     save_every: int = knob(1000, "checkpoint period in steps (the last step always saves)", lo=1)
+    cuda_graph: str = knob("auto", "replay the step after marching as a captured CUDA graph where nothing in it "
+                           "changes but the inputs (auto/on: on CUDA; off: always eager)", choices=("auto", "on", "off"))
     validate_every: float = knob(60.0, "seconds of training between validation renders of one held frame "
                                  "(photo | render | depth) into RUN/validation/; 0 = off (the last step "
                                  "always writes one)", lo=0.0)

@@ -127,3 +127,35 @@ def test_gated_step_matches_step_and_skips_exactly():
     for p, b0, (m, v) in zip(ours, before, moments):
         assert torch.equal(p.detach(), b0) and torch.equal(a.state[p]["exp_avg"], m)
         assert torch.equal(a.state[p]["exp_avg_sq"], v)
+
+
+def test_device_update_matches_gated_step():
+    """The captured update (host half prepare_device_step + device half device_update, the
+    learning rates read from a device tensor) against gated_step over steps with a changing
+    learning rate, and an exact skip."""
+    seed = int.from_bytes(os.urandom(4), "little")
+    gen = torch.Generator().manual_seed(seed)
+    init = _params(gen)
+    ours = [p.clone().requires_grad_(True) for p in init]
+    ref = [p.clone().requires_grad_(True) for p in init]
+    a, b = Adam(_groups(ours), betas=(0.9, 0.99), eps=1e-15), Adam(_groups(ref), betas=(0.9, 0.99), eps=1e-15)
+    a._scal = torch.zeros(2, 2, dtype=torch.float64)
+    for t in range(6):
+        for o in (a, b):
+            for g in o.param_groups:
+                g["lr"] = 1e-2 / (1 + t)
+        for p, q in zip(ours, ref):
+            g = torch.randn(p.shape, generator=gen, dtype=torch.float64)
+            p.grad, q.grad = g.clone(), g.clone()
+        a.prepare_device_step()
+        a.device_update(torch.tensor(True))
+        b.gated_step(torch.tensor(True))
+    assert a.uniform_steps()
+    for x, y in zip(ours, ref):
+        torch.testing.assert_close(x, y, rtol=1e-12, atol=1e-14, msg=f"seed {seed}")
+    before = [p.detach().clone() for p in ours]
+    for p in ours:
+        p.grad = torch.full_like(p, float("nan"))
+    a.prepare_device_step()
+    a.device_update(torch.tensor(False))
+    assert all(torch.equal(p.detach(), q) for p, q in zip(ours, before))

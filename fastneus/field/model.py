@@ -72,6 +72,9 @@ class SDFField(nn.Module):
         self.active_levels = hashgrid.levels
         self.inv_s_floor = 0.0
         self.register_buffer("_tetra", _TETRA.to(device), persistent=False)
+        # device-side schedule (a captured CUDA step): see enable_device_schedule
+        self._dev_sched = False
+        self._floor_t = self._levels_t = self._feat_level = None
 
     @staticmethod
     def _geometric_init(lin: nn.Linear, first: bool, last: bool, d_in: int, radius: float) -> None:
@@ -107,6 +110,41 @@ class SDFField(nn.Module):
         else:
             f = min(1.0, progress / g.c2f_frac)
             self.active_levels = min(g.levels, g.c2f_start_levels + int(math.floor(f * (g.levels - g.c2f_start_levels) + 1e-9)))
+        self._fill_schedule()
+
+    def enable_device_schedule(self) -> None:
+        """Keep the schedule's values where a captured CUDA graph reads them at replay: the
+        sharpness floor and the number of active hash levels as device tensors (filled by
+        :meth:`set_progress`), the hash grid evaluated at every level and the inactive levels'
+        features and Jacobian multiplied by 0 (the same values and gradients as evaluating only
+        the active levels; the table entries of inactive levels get exactly zero gradient)."""
+        dev = self.table.device
+        self._dev_sched = True
+        self._floor_t = torch.zeros((), device=dev)
+        self._levels_t = torch.zeros((), dtype=torch.int32, device=dev)
+        F = self.hashgrid.features
+        self._feat_level = torch.arange(self.hashgrid.levels * F, device=dev, dtype=torch.int32) // F
+        self._fill_schedule()
+
+    def _fill_schedule(self) -> None:
+        if self._dev_sched:  # fill_: the value travels as a kernel argument (no copy, no sync)
+            self._floor_t.fill_(max(1e-3, self.inv_s_floor))
+            self._levels_t.fill_(self.active_levels)
+
+    def _encode(self, u: torch.Tensor) -> torch.Tensor:
+        """[N, L*F] hash features of u in [0, 1]^3 at the active levels (zero above them)."""
+        if not self._dev_sched:
+            return self.encode(u, self.table, self.grid_cfg, self.active_levels)
+        feats = self.encode(u, self.table, self.grid_cfg, self.hashgrid.levels)
+        return feats * (self._feat_level < self._levels_t).to(feats.dtype)
+
+    def _encode_jac(self, u: torch.Tensor):
+        """Features [N, L*F] and d feats / d u [N, L*F, 3] at the active levels (zero above them)."""
+        if not self._dev_sched:
+            return self.encode_jac(u, self.table, self.grid_cfg, self.active_levels)
+        feats, jac = self.encode_jac(u, self.table, self.grid_cfg, self.hashgrid.levels)
+        m = (self._feat_level < self._levels_t).to(feats.dtype)
+        return feats * m, jac * m[:, None]
 
     def normal_eps(self) -> float:
         """Finite-difference step tied to the finest active level (normalised units)."""
@@ -122,7 +160,7 @@ class SDFField(nn.Module):
             [N, 1 + geo_features]: sdf in column 0, geometric features after.
         """
         u = ((x + 1.0) * 0.5).clamp(0.0, 1.0)
-        feats = self.encode(u.contiguous(), self.table, self.grid_cfg, self.active_levels)
+        feats = self._encode(u.contiguous())
         return self.sdf_net(torch.cat([x, feats], dim=-1))
 
     def sdf(self, x: torch.Tensor) -> torch.Tensor:
@@ -178,8 +216,7 @@ class SDFField(nn.Module):
             out [N, 1 + G] (sdf in column 0), grad [N, 3] with a graph to the table, the MLP
             weights and x (create_graph), ready for the eikonal loss.
         """
-        feats, jac = self.encode_jac(((x + 1.0) * 0.5).contiguous(), self.table, self.grid_cfg,
-                                     self.active_levels)                # [N, L*F], [N, L*F, 3]
+        feats, jac = self._encode_jac(((x + 1.0) * 0.5).contiguous())  # [N, L*F], [N, L*F, 3]
         net_in = torch.cat([x, feats], dim=-1)
         if not net_in.requires_grad:  # frozen table and constant x: differentiate the MLP input anyway
             net_in = net_in.detach().requires_grad_()
@@ -224,6 +261,8 @@ class SDFField(nn.Module):
 
     def inv_s(self) -> torch.Tensor:
         """[1] NeuS sharpness exp(10 v), at least the scheduled floor, at most 1e6."""
+        if self._dev_sched:  # the floor from the device (a captured step reads it at replay)
+            return torch.maximum(torch.exp(self.variance * 10.0).clamp(max=1e6), self._floor_t)
         return torch.exp(self.variance * 10.0).clamp(max(1e-3, self.inv_s_floor), 1e6)
 
     def init_color_bias(self, mean_rgb) -> None:
@@ -240,6 +279,7 @@ class SDFField(nn.Module):
         """All hash levels from now on (a fitted initial surface set the fine levels already)."""
         self.hashgrid = dataclasses.replace(self.hashgrid, c2f_start_levels=0)
         self.active_levels = self.hashgrid.levels
+        self._fill_schedule()
 
     def param_groups(self, optim):
         """Adam parameter groups: geometry (hash table, SDF MLP), colour MLP, variance."""

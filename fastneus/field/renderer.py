@@ -38,11 +38,35 @@ def pattern_pass_split(cfg, device) -> bool:
     return mode == "split" or (mode == "auto" and torch.device(device).type == "cuda")
 
 
+def march_samples(bits: torch.Tensor, grid_res: int, origins: torch.Tensor, dirs: torch.Tensor, cfg, *,
+                  jitter: bool = True) -> dict:
+    """Samples of a batch of rays through the occupied cells (the step's one host sync: the
+    packed sample count sizes the buffers).
+
+    Args:
+        bits: [R^3] uint8 occupancy bits; grid_res: R.
+        origins, dirs: [B, 3] float32 normalised rays (dirs unit length).
+        cfg: run config (march step, sample cap, bound, backend).
+        jitter: random start offset per ray (training) or 0 (rendering).
+    Returns:
+        dict: offsets [B] int32 (first sample of each ray), counts [B] int32, t0, t1 [S] float32
+        (sample interval along the ray), ray_index [S] int32, n_samples S (int).
+    """
+    n = origins.shape[0]
+    device = origins.device
+    march = get_op("march_rays", cfg.run.backend)
+    jit = torch.rand(n, device=device) if jitter else torch.zeros(n, device=device)
+    offsets, counts, t0, t1, ray_index = march(origins, dirs, bits, grid_res, cfg.rays.march_step,
+                                               cfg.rays.max_samples_per_ray, jit, cfg.rays.bound, 0.0)
+    return {"offsets": offsets, "counts": counts, "t0": t0, "t1": t1, "ray_index": ray_index,
+            "n_samples": int(t0.shape[0])}
+
+
 def render_rays(field, bits: torch.Tensor, grid_res: int, proj, origins: torch.Tensor, dirs: torch.Tensor,
                 fidx: torch.Tensor, cfg, *, i_r: torch.Tensor, i_b: torch.Tensor, cos_anneal: float,
                 jitter: bool = True, with_normals: bool = False, curvature: bool = False,
                 use_pattern: bool | None = None, extra_points: torch.Tensor | None = None) -> dict:
-    """Render a batch of rays.
+    """Render a batch of rays: :func:`march_samples` then :func:`shade_samples`.
 
     Args:
         field: :class:`fastneus.field.model.SDFField`.
@@ -66,15 +90,29 @@ def render_rays(field, bits: torch.Tensor, grid_res: int, proj, origins: torch.T
         normal [B,3] (if asked), grad [S,3], curv [S] or None, n_samples (int); with
         ``extra_points``: grad_all [S + E, 3] (the samples' gradients, then the extra points').
     """
+    smp = march_samples(bits, grid_res, origins, dirs, cfg, jitter=jitter)
+    return shade_samples(field, smp, proj, origins, dirs, fidx, cfg, i_r=i_r, i_b=i_b, cos_anneal=cos_anneal,
+                         with_normals=with_normals, curvature=curvature, use_pattern=use_pattern,
+                         extra_points=extra_points)
+
+
+def shade_samples(field, smp: dict, proj, origins: torch.Tensor, dirs: torch.Tensor, fidx: torch.Tensor, cfg, *,
+                  i_r: torch.Tensor, i_b: torch.Tensor, cos_anneal: float, with_normals: bool = False,
+                  curvature: bool = False, use_pattern: bool | None = None,
+                  extra_points: torch.Tensor | None = None) -> dict:
+    """The field at the samples of :func:`march_samples` and their NeuS compositing with the
+    projected light (arguments and result as :func:`render_rays`).
+
+    The sample arrays may be longer than the rays use (a captured step's fixed-capacity
+    buffers): samples past every ray's ``offsets + counts`` are evaluated but composite into no
+    ray, and no host value is read here.
+    """
     device = origins.device
     n = origins.shape[0]
-    march = get_op("march_rays", cfg.run.backend)
     render = get_op("render_pattern", cfg.run.backend)
-    jit = torch.rand(n, device=device) if jitter else torch.zeros(n, device=device)
-    offsets, counts, t0, t1, ray_index = march(origins, dirs, bits, grid_res, cfg.rays.march_step,
-                                               cfg.rays.max_samples_per_ray, jit, cfg.rays.bound, 0.0)
-    s = t0.shape[0]
-    if s == 0:
+    offsets, counts, t0, t1, ray_index = smp["offsets"], smp["counts"], smp["t0"], smp["t1"], smp["ray_index"]
+    s = int(t0.shape[0])
+    if smp["n_samples"] == 0:
         res = _empty(n, device, shots=fidx.shape[1] if fidx.dim() == 2 else 0)
         if extra_points is not None:
             res["grad_all"] = field.sdf_and_grad(extra_points)[2]
@@ -127,7 +165,7 @@ def render_rays(field, bits: torch.Tensor, grid_res: int, proj, origins: torch.T
         colors.append(out["color"])
     if fidx.dim() == 2:
         res["color"] = torch.stack(colors, 1)
-    res["grad"], res["curv"], res["n_samples"] = grad, curv, s
+    res["grad"], res["curv"], res["n_samples"] = grad, curv, smp["n_samples"]
     if extra_points is not None:
         res["grad_all"] = grad_all
     if with_normals:

@@ -141,6 +141,71 @@ class Adam:
             torch._foreach_mul_(upd, w)
             torch._foreach_add_(ps, upd)
 
+    # ---------------------------------------------------------------- a captured update
+    def prepare_device_step(self) -> None:
+        """The host half of a captured update (:meth:`device_update`): moment buffers created,
+        step counts advanced, and each group's ``-lr / bc1`` and ``1 / sqrt(bc2)`` written to a
+        device tensor with ``fill_`` (a kernel argument: no copy, no sync), so a replayed graph
+        reads this step's learning rate. Every parameter of a group must have a gradient (the
+        caller checks :meth:`uniform_steps`)."""
+        dev = self.param_groups[0]["params"][0].device
+        if getattr(self, "_scal", None) is None or self._scal.device != dev:
+            self._scal = torch.zeros(len(self.param_groups), 2, device=dev)
+        for gi, g in enumerate(self.param_groups):
+            b1, b2 = g["betas"]
+            t = 0
+            for p in g["params"]:
+                st = self.state.get(p)
+                if st is None:
+                    st = self.state[p] = {"step": 0, "exp_avg": torch.zeros_like(p),
+                                          "exp_avg_sq": torch.zeros_like(p)}
+                st["step"] += 1
+                t = st["step"]
+            self._scal[gi, 0].fill_(-g["lr"] / (1 - b1 ** t))
+            self._scal[gi, 1].fill_(1.0 / math.sqrt(1 - b2 ** t))
+
+    def uniform_steps(self) -> bool:
+        """Whether every parameter of each group has the same step count (one bias correction
+        per group, as :meth:`prepare_device_step` assumes)."""
+        for g in self.param_groups:
+            steps = {self.state[p]["step"] if p in self.state else 0 for p in g["params"]}
+            if len(steps) > 1:
+                return False
+        return True
+
+    @torch.no_grad()
+    def device_update(self, ok: torch.Tensor) -> None:
+        """The device half of a captured update: :meth:`gated_step`'s arithmetic with the
+        learning rates and bias corrections read from the tensor :meth:`prepare_device_step`
+        filled. No host value is read, so the update can be captured in a CUDA graph.
+
+        Args:
+            ok: [] bool/float tensor: apply the update (False: parameters and moments unchanged).
+        """
+        okf = ok.to(torch.float32).reshape(())
+        for gi, g in enumerate(self.param_groups):
+            ps = [p for p in g["params"] if p.grad is not None]
+            if not ps:
+                continue
+            b1, b2 = g["betas"]
+            w = okf.to(ps[0].dtype)
+            gs = [torch.nan_to_num(p.grad, nan=0.0, posinf=0.0, neginf=0.0) for p in ps]
+            ms = [self.state[p]["exp_avg"] for p in ps]
+            vs = [self.state[p]["exp_avg_sq"] for p in ps]
+            d = torch._foreach_sub(gs, ms)
+            torch._foreach_mul_(d, w * (1 - b1))
+            torch._foreach_add_(ms, d)
+            d = torch._foreach_mul(gs, gs)
+            torch._foreach_sub_(d, vs)
+            torch._foreach_mul_(d, w * (1 - b2))
+            torch._foreach_add_(vs, d)
+            denom = torch._foreach_sqrt(vs)
+            torch._foreach_mul_(denom, self._scal[gi, 1].to(ps[0].dtype))
+            torch._foreach_add_(denom, g["eps"])
+            upd = torch._foreach_div(ms, denom)
+            torch._foreach_mul_(upd, self._scal[gi, 0].to(ps[0].dtype) * w)
+            torch._foreach_add_(ps, upd)
+
     # ------------------------------------------------------------------ checkpoints
     def state_dict(self) -> dict:
         """torch.optim's layout: ``state`` keyed by parameter index, groups with index lists."""

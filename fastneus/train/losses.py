@@ -80,16 +80,22 @@ def exposure_gain(log_gain: torch.Tensor, fidx: torch.Tensor) -> torch.Tensor:
     return frame_log_gains(log_gain).exp()[fidx.long()].unsqueeze(-1)
 
 
-def eikonal(grads: torch.Tensor, weight: float) -> dict[str, torch.Tensor]:
+def _mean(x: torch.Tensor, valid: torch.Tensor | None) -> torch.Tensor:
+    """Mean of ``x`` [N], or over the entries where ``valid`` [N] (0/1) is 1 (padded buffers)."""
+    return x.mean() if valid is None else (x * valid).sum() / valid.sum().clamp_min(1.0)
+
+
+def eikonal(grads: torch.Tensor, weight: float, valid: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
     """Eikonal term: the SDF gradient has unit length.
 
     Args:
         grads: [N, 3] SDF gradients (at the samples and at uniform points).
         weight: ``loss.eikonal_weight``.
+        valid: [N] 0/1, the rows that count (a captured step pads its sample buffers); None: all.
     Returns:
         {"eikonal": weight * mean (|g| - 1)^2, "eik": the unweighted mean (for the log, not summed)}.
     """
-    r = ((grads.norm(dim=-1) - 1.0) ** 2).mean()
+    r = _mean((grads.norm(dim=-1) - 1.0) ** 2, valid)
     return {"eikonal": weight * r, "eik": r.detach()}
 
 
@@ -148,13 +154,14 @@ def prior_fade(p: float, weight: float, frac: float) -> float:
     return weight * (1.0 - p / frac)
 
 
-def curvature(curv: torch.Tensor, weight: float) -> dict[str, torch.Tensor]:
+def curvature(curv: torch.Tensor, weight: float, valid: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
     """Smoothness prior |f(x+e) + f(x-e) - 2 f(x)| (one-shot).
 
     Args:
         curv: [N] Laplacian-like residuals of the SDF at the samples; weight: ``loss.curvature_weight``.
+        valid: [N] 0/1, the samples that count (padded buffers); None: all.
     """
-    return {"curvature": weight * curv.abs().mean()}
+    return {"curvature": weight * _mean(curv.abs(), valid)}
 
 
 def total(terms: dict[str, torch.Tensor]) -> torch.Tensor:

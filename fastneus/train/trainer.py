@@ -15,7 +15,7 @@ import torch
 from fastneus.config import Config, config_from_dict, save_config
 from fastneus.errors import FastneusError
 from fastneus.field.model import SDFField
-from fastneus.field.renderer import pattern_pass_split, render_rays
+from fastneus.field.renderer import march_samples, pattern_pass_split, shade_samples
 from fastneus.train.geometry_init import fit_batch
 from fastneus.io import open_append
 from fastneus.kernels.occupancy import OccupancyGrid
@@ -169,6 +169,12 @@ class Trainer:
         # on CUDA the NaN guard gates the Adam update on the device: no host sync per step
         self._skipped_dev = torch.zeros((), dtype=torch.int64, device=self.device) if self.device.type == "cuda" else None
         self.empty_steps = 0        # consecutive steps whose rays found no occupied cell
+        # CUDA: the step after marching replayed as a captured graph (fastneus.train.graphstep)
+        self.graphs = None
+        if self.device.type == "cuda" and cfg.run.cuda_graph != "off":
+            from fastneus.train.graphstep import StepGraphs
+
+            self.graphs = StepGraphs(self, console)
         self.history: list[dict] = []
         self._grid_open = False     # grid forced fully occupied (warm-up) since the last update
         self.gen = torch.Generator(device=self.device)
@@ -255,23 +261,28 @@ class Trainer:
 
     # ------------------------------------------------------------------ one step
     def train_step(self) -> dict | None:
-        """One optimisation step. Returns scalars (as tensors) for logging, or None if skipped."""
+        """One optimisation step. Returns scalars (as tensors) for logging, or None if skipped.
+
+        The host part (schedules, occupancy, rays, marching: the step's one host sync) runs here;
+        the rest (:meth:`compute`: field, compositing, losses, backward, Adam) runs eagerly, or on
+        CUDA replays a captured graph of itself (:mod:`fastneus.train.graphstep`) when nothing in
+        it changes from step to step but the inputs.
+        """
         c = self.cfg
         p = self.progress()
         self.field.set_progress(p)
         self.update_grid(p)
         self._set_lr(p)
-        batch = self.rig.rays(self.bank.sample(self.n_rays, self.gen, bright_fraction=c.rays.bright_fraction))
-        i_r, i_b = self.illumination()
+        graphs = self.graphs if self.graphs is not None and self.graphs.eligible(self, p) else None
+        n = graphs.ray_bucket(self.n_rays) if graphs is not None else self.n_rays
+        batch = self.rig.rays(self.bank.sample(n, self.gen, bright_fraction=c.rays.bright_fraction))
         # a few uniform points for the eikonal term so the far field stays an SDF; they go through
         # the field in the same call as the samples (one hash + MLP pass instead of two)
-        xr = torch.rand(max(256, self.n_rays // 4), 3, device=self.device, generator=self.gen) * 2 - 1
-        out = render_rays(self.field, self.grid.bits, self.grid.resolution, self.rig.projection(), batch["origins"],
-                          batch["dirs"], batch["fidx"], c, i_r=i_r, i_b=i_b, cos_anneal=self.cos_anneal(p),
-                          jitter=True, curvature=c.loss.curvature_weight > 0, extra_points=xr)
-        s = out["n_samples"]
+        xr = torch.rand(max(256, n // 4), 3, device=self.device, generator=self.gen) * 2 - 1
+        smp = march_samples(self.grid.bits, self.grid.resolution, batch["origins"], batch["dirs"], c, jitter=True)
+        s = smp["n_samples"]
         # adapt the ray count to the sample budget (s is known on the host from marching)
-        mean_spr = max(1.0, s / self.n_rays)
+        mean_spr = max(1.0, s / n)
         self.n_rays = int(min(c.rays.max_rays, max(c.rays.min_rays, 0.8 * self.n_rays + 0.2 * c.rays.target_samples / mean_spr)))
         if s == 0:
             # an empty grid would stall training for good: re-open it after a few empty steps
@@ -282,6 +293,37 @@ class Trainer:
             self.step += 1
             return None
         self.empty_steps = 0
+        if graphs is not None:
+            rec = graphs.step(self, batch, xr, smp, p)
+        else:
+            rec = self.compute(batch, xr, smp, p)
+        self.rig.fix_gauge()
+        self.step += 1
+        if rec is None:
+            return None
+        rec["spr"], rec["samples"] = s / n, s
+        return rec
+
+    def compute(self, batch: dict, xr: torch.Tensor, smp: dict, p: float, valid: torch.Tensor | None = None,
+                device_adam: bool = False) -> dict | None:
+        """The step after marching: field, compositing, losses, backward, guarded Adam update.
+
+        Args:
+            batch: :meth:`RayBank.sample` dict (after the rig); xr: [E, 3] uniform points.
+            smp: :func:`march_samples` dict (its arrays may be padded past the live samples).
+            p: progress in [0, 1].
+            valid: [S + E] float, 1 for live samples and the uniform points, 0 for padding (a
+                captured step's fixed-capacity buffers); None: every sample is live.
+            device_adam: the Adam update reads its learning rates from device scalars (prepared
+                by ``Adam.prepare_device_step`` before the step; a captured step).
+        Returns:
+            {"loss", "l1", "mse", "eik"} as tensors, or None when the host guard skipped the step.
+        """
+        c = self.cfg
+        i_r, i_b = self.illumination()
+        out = shade_samples(self.field, smp, self.rig.projection(), batch["origins"], batch["dirs"], batch["fidx"], c,
+                            i_r=i_r, i_b=i_b, cos_anneal=self.cos_anneal(p), curvature=c.loss.curvature_weight > 0,
+                            extra_points=xr)
         # the camera clips at 1: a rendered value above it is a saturated pixel, not an error
         # (unclipped, bright pattern pixels would pull i_r down on Normal-light scenes)
         # [B, 3], or [B, K, 3] with K shots per ray (multi-shot); + water (fastneus.train.rig)
@@ -291,8 +333,8 @@ class Trainer:
         pred = pred.clamp(max=1.0)
         terms = losses.photometric(pred, batch["rgb"], c.loss.robust, c.loss.robust_eps, batch.get("sat"),
                                    c.loss.saturated)
-        # eikonal on the samples plus the uniform points (evaluated with them in render_rays)
-        terms |= losses.eikonal(out["grad_all"], c.loss.eikonal_weight)
+        # eikonal on the samples plus the uniform points (evaluated with them in shade_samples)
+        terms |= losses.eikonal(out["grad_all"], c.loss.eikonal_weight, valid=valid)
         if self.masks_used and "mask" in batch:
             terms |= losses.mask_bce(out["opacity"], batch["mask"], c.loss.mask_weight)
         elif self.bg_used and "bg" in batch and p >= c.loss.bg_start_frac:
@@ -302,23 +344,22 @@ class Trainer:
             w = losses.prior_fade(p, c.init.prior_weight, c.init.prior_frac)
             terms |= losses.surface_prior(self.prior.loss(self.field, fit_batch(c) // 2, self.gen, eikonal=False), w)
         if c.loss.curvature_weight > 0 and out["curv"] is not None:
-            terms |= losses.curvature(out["curv"], c.loss.curvature_weight)
+            cv = None if valid is None else valid[: out["curv"].shape[0]]
+            terms |= losses.curvature(out["curv"], c.loss.curvature_weight, valid=cv)
         loss = losses.total(terms)
         self.opt.zero_grad(set_to_none=True)
         loss.backward()
         if self._skipped_dev is not None:  # NaN/Inf guard on the device (no host sync)
             ok = finite_flag(self.opt, loss)
-            self.opt.gated_step(ok)
+            if device_adam:
+                self.opt.device_update(ok)
+            else:
+                self.opt.gated_step(ok)
             self._skipped_dev += (~ok).to(torch.int64)
         elif not finite_step(self.opt, loss):  # NaN/Inf guard
-            self.rig.fix_gauge()
-            self.step += 1
             self._skipped += 1
             return None
-        self.rig.fix_gauge()
-        self.step += 1
-        return {"loss": loss.detach(), "l1": terms["rgb"].detach(), "mse": terms["mse"], "eik": terms["eik"],
-                "spr": s / batch["origins"].shape[0], "samples": s}
+        return {"loss": loss.detach(), "l1": terms["rgb"].detach(), "mse": terms["mse"], "eik": terms["eik"]}
 
     # ------------------------------------------------------------------ loop
     def fit(self, final_save: bool = True) -> dict:

@@ -1,0 +1,167 @@
+"""The training step after marching, captured as a CUDA graph and replayed.
+
+A step on the GPU is host-bound: ~300 small launches (hash grid, the MLPs' forward and double
+backward, the render and projection kernels, the losses, backward, Adam) cost more host time
+than the GPU needs to run them. :meth:`Trainer.compute` (the field, compositing, losses,
+backward and the guarded Adam update) reads nothing from the host, so it can be recorded once
+and replayed as one graph launch, given that
+
+- its inputs live in fixed buffers: the rays (the ray count is rounded to 8 values per octave),
+  the uniform eikonal points, and the march's samples padded to a capacity rounded up to 16
+  values per octave; a 0/1 ``valid`` vector keeps the padding out of the eikonal and curvature
+  means (padded samples belong to no ray, so compositing never sees them);
+- the values that change from step to step are on the device: the learning rates and bias
+  corrections (``Adam.prepare_device_step``), the sharpness floor and the number of active hash
+  levels (``SDFField.enable_device_schedule``);
+- nothing else changes: steps in the NeuS cos-anneal ramp, the background prior's ramp-in,
+  with the fading surface prior, pose / blur / water corrections, or a step count that differs
+  inside a parameter group run eagerly (:meth:`StepGraphs.eligible`).
+
+One graph per (ray count, sample capacity, loss terms); the first step of a key runs eagerly on
+a side stream (it is that step's update) and then records the graph. A failed capture turns the
+graphs off for the run with one printed line; training goes on eagerly. ``run.cuda_graph=off``
+keeps every step eager (the tested reference; tests/test_graphstep.py compares the two).
+"""
+from __future__ import annotations
+
+import collections
+import math
+
+import torch
+
+from fastneus.train import losses
+from fastneus.train.rays import RayBank
+
+MAX_GRAPHS = 6  # least recently used graphs are dropped past this (each keeps its activations)
+
+
+def ray_bucket(n: int) -> int:
+    """``n`` rounded to one of 8 values per octave (>= 8)."""
+    n = max(8, int(n))
+    q = 1 << max(0, n.bit_length() - 4)
+    return max(q, int(round(n / q)) * q)
+
+
+def sample_bucket(s: int) -> int:
+    """The smallest of 16 values per octave that holds ``s`` samples (>= s)."""
+    s = max(16, int(s))
+    q = 1 << max(0, s.bit_length() - 5)
+    return int(math.ceil(s / q)) * q
+
+
+class _Entry:
+    """Static buffers of one captured step and its graph."""
+
+    def __init__(self, batch: dict, xr: torch.Tensor, smp: dict, capacity: int):
+        dev = xr.device
+        self.batch = {k: v.clone() for k, v in batch.items()}
+        self.xr = xr.clone()
+        self.capacity = capacity
+        self.smp = {"offsets": smp["offsets"].clone(), "counts": smp["counts"].clone(),
+                    "t0": torch.zeros(capacity, dtype=smp["t0"].dtype, device=dev),
+                    "t1": torch.zeros(capacity, dtype=smp["t1"].dtype, device=dev),
+                    "ray_index": torch.zeros(capacity, dtype=smp["ray_index"].dtype, device=dev),
+                    "n_samples": capacity}
+        self.valid = torch.ones(capacity + xr.shape[0], device=dev)
+        self.graph: torch.cuda.CUDAGraph | None = None
+        self.rec: dict | None = None
+
+    def load(self, batch: dict, xr: torch.Tensor, smp: dict) -> None:
+        """Copy this step's inputs in (device-to-device copies and fills: no host sync)."""
+        for k, v in batch.items():
+            self.batch[k].copy_(v)
+        self.xr.copy_(xr)
+        s = smp["n_samples"]
+        for k in ("offsets", "counts"):
+            self.smp[k].copy_(smp[k])
+        for k in ("t0", "t1", "ray_index"):
+            self.smp[k][:s].copy_(smp[k])
+            self.smp[k][s:].zero_()
+        self.valid[:s].fill_(1.0)
+        self.valid[s:self.capacity].fill_(0.0)
+
+
+class StepGraphs:
+    """Captured training steps of one :class:`~fastneus.train.trainer.Trainer` (CUDA only).
+
+    Args:
+        trainer: the trainer; its field switches to the device-side schedule.
+        console: where the one-line notice of a failed capture goes (None: nowhere).
+    """
+
+    def __init__(self, trainer, console=None):
+        self.device = trainer.device
+        self.side = torch.cuda.Stream(self.device)
+        self.cache: collections.OrderedDict = collections.OrderedDict()
+        self.enabled = True
+        self.console = console
+        self.captured = self.replayed = self.eager = 0
+        trainer.field.enable_device_schedule()
+
+    @staticmethod
+    def ray_bucket(n: int) -> int:
+        return ray_bucket(n)
+
+    def eligible(self, tr, p: float) -> bool:
+        """Whether this step's compute part is the same graph as any other step's with its key."""
+        c = tr.cfg
+        ok = (self.enabled and not tr.rig.active and isinstance(tr.bank, RayBank)
+              and tr.cos_anneal(p) >= 1.0
+              and not (tr.prior is not None and p < c.init.prior_frac)
+              and not (tr.bg_used and not tr.masks_used and p >= c.loss.bg_start_frac
+                       and losses.background_ramp(p, c.loss.bg_start_frac) < 1.0)
+              # the curvature taps' and finite differences' step follows the finest active level
+              and not ((c.loss.curvature_weight > 0 or tr.field.sdf_grad == "fd")
+                       and tr.field.active_levels < tr.field.hashgrid.levels)
+              and tr.opt.uniform_steps())
+        if not ok:
+            self.eager += 1
+        return ok
+
+    def _key(self, tr, batch: dict, capacity: int, p: float) -> tuple:
+        c = tr.cfg
+        bg = tr.bg_used and not tr.masks_used and p >= c.loss.bg_start_frac
+        return (batch["origins"].shape[0], capacity, bg, tuple(sorted(batch)))
+
+    def step(self, tr, batch: dict, xr: torch.Tensor, smp: dict, p: float) -> dict | None:
+        """Run this step's compute part: replay its graph, or run it eagerly and capture it."""
+        capacity = sample_bucket(smp["n_samples"])
+        key = self._key(tr, batch, capacity, p)
+        tr.opt.prepare_device_step()
+        e = self.cache.get(key)
+        if e is None:
+            e = _Entry(batch, xr, smp, capacity)
+            self.cache[key] = e
+            while len(self.cache) > MAX_GRAPHS:
+                self.cache.popitem(last=False)
+        self.cache.move_to_end(key)
+        e.load(batch, xr, smp)
+        if e.graph is not None:
+            e.graph.replay()
+            self.replayed += 1
+            return dict(e.rec)
+        # first step of this key: the real update, eagerly on the side stream (warms up its
+        # cuBLAS handle and autograd there), then record the graph (recording runs nothing)
+        cur = torch.cuda.current_stream(self.device)
+        self.side.wait_stream(cur)
+        with torch.cuda.stream(self.side):
+            rec = tr.compute(e.batch, e.xr, e.smp, p, valid=e.valid, device_adam=True)
+        cur.wait_stream(self.side)
+        try:
+            g = torch.cuda.CUDAGraph()
+            tr.opt.zero_grad(set_to_none=True)  # the graph allocates its own gradients
+            with torch.cuda.graph(g, stream=self.side):
+                out = tr.compute(e.batch, e.xr, e.smp, p, valid=e.valid, device_adam=True)
+            cur.wait_stream(self.side)
+            e.graph, e.rec = g, out
+            self.captured += 1
+        except Exception as err:  # noqa: BLE001 - any capture failure falls back to eager steps
+            self.enabled = False
+            self.cache.clear()
+            if self.console is not None:
+                self.console.print(f"CUDA graph capture failed ({type(err).__name__}: {str(err).splitlines()[0][:120]}); "
+                                   "training goes on with eager steps (run.cuda_graph=off hides this)")
+        return rec
+
+    def summary(self) -> dict:
+        return {"graphs": len(self.cache), "captured": self.captured, "replayed": self.replayed, "eager": self.eager}
