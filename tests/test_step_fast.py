@@ -19,7 +19,8 @@ DEVICES = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
 def _trainer(small_scene, tmp_path, device, name):
     from fastneus.train.trainer import Trainer
 
-    cfg = load_config("cpu-quick", SMALL_RUN + ["threads=1", "init_geometry=sphere"])
+    # eager steps: this file checks the guard and the merged pass (test_graphstep.py the graphs)
+    cfg = load_config("cpu-quick", SMALL_RUN + ["threads=1", "init_geometry=sphere", "cuda_graph=off"])
     return Trainer(Scene.load(_scene_for(small_scene, tmp_path, device)), cfg, tmp_path / name, device)
 
 

@@ -32,7 +32,7 @@ import torch
 from fastneus.train import losses
 from fastneus.train.rays import RayBank
 
-MAX_GRAPHS = 6  # least recently used graphs are dropped past this (each keeps its activations)
+MAX_GRAPHS = 8  # least recently used graphs are dropped past this (each keeps its activations)
 
 
 def ray_bucket(n: int) -> int:
@@ -123,9 +123,24 @@ class StepGraphs:
         bg = tr.bg_used and not tr.masks_used and p >= c.loss.bg_start_frac
         return (batch["origins"].shape[0], capacity, bg, tuple(sorted(batch)))
 
+    def ray_count(self, n: int) -> int:
+        """The ray count of this step: the last one while ``n`` stays within 12 % of it (so the
+        adaptive count does not hop between graphs), else ``n`` rounded (:func:`ray_bucket`)."""
+        last = getattr(self, "_rays", None)
+        if last is None or abs(n - last) > 0.12 * last:
+            self._rays = ray_bucket(n)
+        return self._rays
+
+    def _capacity(self, tr, batch: dict, s: int, p: float) -> int:
+        """The smallest cached capacity for this key that holds ``s`` samples with at most 20 %
+        padding, else a new one 5 % above ``s`` (the count jitters by a few % per step)."""
+        fits = [k[1] for k in self.cache if k[0] == batch["origins"].shape[0] and s <= k[1] <= 1.2 * s
+                and k[2:] == self._key(tr, batch, 0, p)[2:]]
+        return min(fits) if fits else sample_bucket(int(s * 1.05) + 1)
+
     def step(self, tr, batch: dict, xr: torch.Tensor, smp: dict, p: float) -> dict | None:
         """Run this step's compute part: replay its graph, or run it eagerly and capture it."""
-        capacity = sample_bucket(smp["n_samples"])
+        capacity = self._capacity(tr, batch, smp["n_samples"], p)
         key = self._key(tr, batch, capacity, p)
         tr.opt.prepare_device_step()
         e = self.cache.get(key)

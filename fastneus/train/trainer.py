@@ -274,7 +274,7 @@ class Trainer:
         self.update_grid(p)
         self._set_lr(p)
         graphs = self.graphs if self.graphs is not None and self.graphs.eligible(self, p) else None
-        n = graphs.ray_bucket(self.n_rays) if graphs is not None else self.n_rays
+        n = graphs.ray_count(self.n_rays) if graphs is not None else self.n_rays
         batch = self.rig.rays(self.bank.sample(n, self.gen, bright_fraction=c.rays.bright_fraction))
         # a few uniform points for the eikonal term so the far field stays an SDF; they go through
         # the field in the same call as the samples (one hash + MLP pass instead of two)
@@ -461,6 +461,12 @@ class Trainer:
             t_save -= time.perf_counter()
             self.save()
             t_save += time.perf_counter()
+        if self.graphs is not None:  # how much of the run replayed captured steps (printed and saved)
+            g = self.graphs.summary()
+            last["cuda_graphs"] = g
+            if self.console is not None:
+                self.console.print(f"CUDA graphs: {g['replayed']} steps replayed, {g['captured']} captured, "
+                                   f"{g['eager']} eager{'' if self.graphs.enabled else ' (capture failed: off)'}")
         clock = self.clock
         if clock is not None:
             clock.add("kernels", t_kernels)
