@@ -30,6 +30,31 @@ def test_buckets_hold_the_count_and_are_few():
     assert len({ray_bucket(n) for n in range(730, 790)}) <= 2
 
 
+def test_ray_count_and_capacity_stay_put_under_jitter():
+    """The adaptive ray count and the march's sample count jitter by a few % per step: the
+    captured step's ray count and sample capacity must not hop between graphs with them."""
+    from fastneus.train.graphstep import StepGraphs
+
+    g = StepGraphs.__new__(StepGraphs)  # the bookkeeping only (no CUDA stream)
+    g.cache = {}
+    seen = {g.ray_count(n) for n in (760, 745, 790, 770, 801, 735)}
+    assert len(seen) == 1
+    assert g.ray_count(1000) != g.ray_count(760) or g.ray_count(1000) == ray_bucket(1000)
+
+    class _T:  # what _key reads of a trainer
+        bg_used, masks_used = False, True
+        cfg = load_config("cpu-quick")
+
+    batch = {"origins": torch.zeros(768, 3), "dirs": torch.zeros(768, 3)}
+    cap = g._capacity(_T, batch, 250_000, 0.5)
+    assert cap >= 250_000 * 1.05
+    g.cache[g._key(_T, batch, cap, 0.5)] = None
+    for s in (240_000, 251_000, 258_000, 235_000):  # within 20 % padding: the same capacity
+        assert g._capacity(_T, batch, s, 0.5) == cap
+    assert g._capacity(_T, batch, cap + 1, 0.5) > cap  # too many samples: a larger one
+    assert g._capacity(_T, batch, 150_000, 0.5) < cap  # far fewer: a smaller one
+
+
 def _scene(small_scene, tmp_path, device):
     if device == "cpu":
         return small_scene
@@ -126,7 +151,7 @@ def test_device_schedule_gives_the_same_field_and_table_gradients(small_scene, t
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="CUDA graphs need a CUDA device")
-def test_replayed_graph_matches_the_eager_step(small_scene, tmp_path):
+def test_cuda_replayed_graph_matches_the_eager_step(small_scene, tmp_path):
     """Graph steps (first: eager on the side stream + capture; then replays) against eager
     steps on the same inputs: the same loss and parameters after every step."""
     from fastneus.train.graphstep import StepGraphs
