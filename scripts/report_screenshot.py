@@ -17,11 +17,8 @@ import sys
 import tempfile
 from pathlib import Path
 
-# as root on a machine without a network: no sandbox, SwiftShader's WebGL, nothing fetched in the background
-FLAGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
-         "--disable-background-networking", "--disable-component-update", "--disable-sync",
-         "--use-angle=swiftshader", "--enable-unsafe-swiftshader", "--hide-scrollbars",
-         "--force-device-scale-factor=1", "--enable-logging=stderr", "--v=0"]
+from fastneus.eval.viewer import HEADLESS_CHROMIUM_FLAGS as FLAGS
+
 PROBE = """<script>
 (() => {
   const log = console.log.bind(console), err = console.error.bind(console);

@@ -32,3 +32,17 @@ def one_line_error(capsys, *needles: str) -> str:
     for n in needles:
         assert n in err, (n, err)
     return err
+
+
+def scene_on(small_scene, tmp_path, device: str):
+    """The ``small_scene`` folder, or on CUDA the same scene rendered on the GPU into ``tmp_path``
+    (a GPU machine may have no CPU compiler for Warp)."""
+    if device == "cpu":
+        return small_scene
+    path = tmp_path / "sphere3-cuda"
+    if not (path / "scene.json").is_file():
+        from fastneus.synth.render import synthesize
+
+        synthesize(path, shape="sphere", views=3, size=(24, 24), pattern="crosslaser", illum="normal", seed=0,
+                   device=device, proj_size=(64, 48), progress=False, contact_sheet=False)
+    return path

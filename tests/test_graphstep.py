@@ -11,7 +11,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from conftest import SMALL_RUN
+from conftest import SMALL_RUN, scene_on
 from fastneus.config import load_config
 from fastneus.data import Scene
 from fastneus.field.renderer import march_samples
@@ -53,18 +53,6 @@ def test_ray_count_and_capacity_stay_put_under_jitter():
         assert g._capacity(_T, batch, s, 0.5) == cap
     assert g._capacity(_T, batch, cap + 1, 0.5) > cap  # too many samples: a larger one
     assert g._capacity(_T, batch, 150_000, 0.5) < cap  # far fewer: a smaller one
-
-
-def _scene(small_scene, tmp_path, device):
-    if device == "cpu":
-        return small_scene
-    path = tmp_path / "sphere3-cuda"
-    if not (path / "scene.json").is_file():
-        from fastneus.synth.render import synthesize
-
-        synthesize(path, shape="sphere", views=3, size=(24, 24), pattern="crosslaser", illum="normal", seed=0,
-                   device=device, proj_size=(64, 48), progress=False, contact_sheet=False)
-    return path
 
 
 def _pair(scene_dir, tmp_path, device, extra=()):
@@ -156,7 +144,7 @@ def test_cuda_replayed_graph_matches_the_eager_step(small_scene, tmp_path):
     steps on the same inputs: the same loss and parameters after every step."""
     from fastneus.train.graphstep import StepGraphs
 
-    a, b = _pair(_scene(small_scene, tmp_path, "cuda"), tmp_path, "cuda")
+    a, b = _pair(scene_on(small_scene, tmp_path, "cuda"), tmp_path, "cuda")
     a.field._dev_sched = False  # StepGraphs switches it on
     graphs = StepGraphs(a)
     p = 0.5

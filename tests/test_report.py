@@ -153,10 +153,7 @@ def test_decimation_keeps_surface_and_colours():
 
 # Debian's chromium, headless, as root, on a machine without a network (the flags the env notes give):
 # no sandbox (root), no GPU (SwiftShader's WebGL draws), nothing fetched in the background, a fresh profile
-CHROMIUM_FLAGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
-                  "--disable-background-networking", "--disable-component-update", "--disable-sync",
-                  "--use-angle=swiftshader", "--enable-unsafe-swiftshader", "--hide-scrollbars",
-                  "--force-device-scale-factor=1", "--enable-logging=stderr", "--v=0"]
+from fastneus.eval.viewer import HEADLESS_CHROMIUM_FLAGS as CHROMIUM_FLAGS  # noqa: E402
 # injected first into a copy of report.html: console errors, uncaught exceptions, rejected promises and the
 # viewer's own error event become marked log lines; once the GLB is loaded the viewer's box is logged
 PROBE = """<script>

@@ -9,7 +9,7 @@ import copy
 import pytest
 import torch
 
-from conftest import SMALL_RUN
+from conftest import SMALL_RUN, scene_on
 from fastneus.config import load_config
 from fastneus.data import Scene
 
@@ -21,21 +21,7 @@ def _trainer(small_scene, tmp_path, device, name):
 
     # eager steps: this file checks the guard and the merged pass (test_graphstep.py the graphs)
     cfg = load_config("cpu-quick", SMALL_RUN + ["threads=1", "init_geometry=sphere", "cuda_graph=off"])
-    return Trainer(Scene.load(_scene_for(small_scene, tmp_path, device)), cfg, tmp_path / name, device)
-
-
-def _scene_for(small_scene, tmp_path, device):
-    """The shared CPU-rendered scene, or on CUDA the same scene rendered on the GPU (a GPU
-    machine may have no CPU compiler for Warp)."""
-    if device == "cpu":
-        return small_scene
-    path = tmp_path / "sphere3-cuda"
-    if not (path / "scene.json").is_file():
-        from fastneus.synth.render import synthesize
-
-        synthesize(path, shape="sphere", views=3, size=(24, 24), pattern="crosslaser", illum="normal", seed=0,
-                   device=device, proj_size=(64, 48), progress=False, contact_sheet=False)
-    return path
+    return Trainer(Scene.load(scene_on(small_scene, tmp_path, device)), cfg, tmp_path / name, device)
 
 
 def _params(tr):

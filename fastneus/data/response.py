@@ -59,11 +59,15 @@ def _as_response(r) -> Response:
     return r if isinstance(r, Response) else parse_response(r)
 
 
+def _prepared(x, response):
+    """(the parsed response, numpy or torch, ``x`` clipped to [0, 1]) for decode/encode."""
+    lib = torch if isinstance(x, torch.Tensor) else np
+    return _as_response(response), lib, (lib.clip(x, 0.0, 1.0) if lib is np else x.clamp(0.0, 1.0))
+
+
 def decode(x, response) -> torch.Tensor | np.ndarray:
     """Encoded values in [0, 1] -> linear light (torch or numpy, any shape)."""
-    r = _as_response(response)
-    lib = torch if isinstance(x, torch.Tensor) else np
-    x = lib.clip(x, 0.0, 1.0) if lib is np else x.clamp(0.0, 1.0)
+    r, lib, x = _prepared(x, response)
     if r.kind == "linear":
         return x
     if r.kind == "gamma":
@@ -73,9 +77,7 @@ def decode(x, response) -> torch.Tensor | np.ndarray:
 
 def encode(x, response) -> torch.Tensor | np.ndarray:
     """Linear light -> encoded values in [0, 1] (clipped first, as the camera saturates)."""
-    r = _as_response(response)
-    lib = torch if isinstance(x, torch.Tensor) else np
-    x = lib.clip(x, 0.0, 1.0) if lib is np else x.clamp(0.0, 1.0)
+    r, lib, x = _prepared(x, response)
     if r.kind == "linear":
         return x
     if r.kind == "gamma":

@@ -20,6 +20,14 @@ VIEWER_VERSION = "@google/model-viewer 4.4.0"
 MAX_FACES = 100_000  # ~2 MB of GLB: what the page embeds at most
 
 
+# Headless Chromium drawing a report (the browser test, scripts/report_screenshot.py): as root on a
+# machine without a network: no sandbox, SwiftShader's WebGL, nothing fetched in the background
+HEADLESS_CHROMIUM_FLAGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
+                           "--disable-background-networking", "--disable-component-update", "--disable-sync",
+                           "--use-angle=swiftshader", "--enable-unsafe-swiftshader", "--hide-scrollbars",
+                           "--force-device-scale-factor=1", "--enable-logging=stderr", "--v=0"]
+
+
 def viewer_script() -> str:
     """The vendored model-viewer module's source text."""
     return (resources.files("fastneus.eval") / "vendor" / "model-viewer.min.js").read_text(encoding="utf-8")

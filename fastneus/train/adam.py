@@ -46,6 +46,13 @@ class Adam:
                 g.setdefault(k, v)
             self.param_groups.append(g)
 
+    def _state(self, p: torch.Tensor) -> dict:
+        """``p``'s step count and moments, created (zero) on its first update."""
+        st = self.state.get(p)
+        if st is None:
+            st = self.state[p] = {"step": 0, "exp_avg": torch.zeros_like(p), "exp_avg_sq": torch.zeros_like(p)}
+        return st
+
     def zero_grad(self, set_to_none: bool = True) -> None:
         for g in self.param_groups:
             for p in g["params"]:
@@ -66,10 +73,7 @@ class Adam:
             for p in g["params"]:
                 if p.grad is None:
                     continue
-                st = self.state.get(p)
-                if st is None:
-                    st = self.state[p] = {"step": 0, "exp_avg": torch.zeros_like(p),
-                                          "exp_avg_sq": torch.zeros_like(p)}
+                st = self._state(p)
                 st["step"] += 1
                 lists = by_step.setdefault(st["step"], ([], [], [], []))
                 lists[0].append(p)
@@ -110,10 +114,7 @@ class Adam:
             for p in g["params"]:
                 if p.grad is None:
                     continue
-                st = self.state.get(p)
-                if st is None:
-                    st = self.state[p] = {"step": 0, "exp_avg": torch.zeros_like(p),
-                                          "exp_avg_sq": torch.zeros_like(p)}
+                st = self._state(p)
                 st["step"] += 1
                 t = st["step"]
                 # -lr / bc1 and 1 / bc2_sqrt per tensor; eps and the betas are shared by a bucket
@@ -155,10 +156,7 @@ class Adam:
             b1, b2 = g["betas"]
             t = 0
             for p in g["params"]:
-                st = self.state.get(p)
-                if st is None:
-                    st = self.state[p] = {"step": 0, "exp_avg": torch.zeros_like(p),
-                                          "exp_avg_sq": torch.zeros_like(p)}
+                st = self._state(p)
                 st["step"] += 1
                 t = st["step"]
             self._scal[gi, 0].fill_(-g["lr"] / (1 - b1 ** t))
