@@ -11,9 +11,33 @@ from fastneus.errors import FastneusError
 from fastneus.io import atomic_write_json
 
 
+def machine() -> dict:
+    """The machine a run ran on: host, OS, CPU, cores, Python and torch, and the GPU when CUDA
+    is up (read without initialising CUDA otherwise)."""
+    import os
+    import platform
+    import sys
+
+    import torch
+
+    m = {"host": platform.node(), "os": platform.platform(), "cpu": platform.processor() or platform.machine(),
+         "cores": os.cpu_count(), "python": sys.version.split()[0], "torch": torch.__version__}
+    try:
+        with open("/proc/cpuinfo", encoding="utf-8", errors="replace") as f:
+            for line in f:
+                if line.startswith("model name"):
+                    m["cpu"] = line.split(":", 1)[1].strip()
+                    break
+    except OSError:
+        pass
+    if torch.cuda.is_initialized():
+        m["gpu"] = torch.cuda.get_device_name()
+    return m
+
+
 def provenance() -> dict:
-    """What made a run: fastneus's version, the command line and, for a git checkout of
-    fastneus, its commit (``+dirty`` with uncommitted changes); recorded in run.json."""
+    """What made a run: fastneus's version, the command line, the machine and, for a git
+    checkout of fastneus, its commit (``+dirty`` with uncommitted changes); recorded in run.json."""
     import shlex
     import subprocess
     import sys
@@ -22,7 +46,7 @@ def provenance() -> dict:
 
     prog = Path(sys.argv[0]).name if sys.argv and sys.argv[0] else "python"
     prog = "fastneus" if prog == "__main__.py" else prog  # python -m fastneus / fastneus.cli
-    out = {"fastneus_version": __version__, "command": shlex.join([prog, *sys.argv[1:]])}
+    out = {"fastneus_version": __version__, "command": shlex.join([prog, *sys.argv[1:]]), "machine": machine()}
     src = Path(__file__).resolve().parent.parent
     try:
         git = lambda *a: subprocess.run(["git", "-C", str(src), *a], capture_output=True, text=True,  # noqa: E731

@@ -753,7 +753,7 @@ def _(c):
 
 @case("cli-mesh-out-suffix")
 def _(c):
-    return c.on_run("mesh", None, "--out", str(c.tmp / "m.stl")) + (["m.stl", "--out", ".ply, .obj or .glb"],)
+    return c.on_run("mesh", None, "--out", str(c.tmp / "m.xyz")) + (["m.xyz", "--out", ".ply, .obj, .glb, .stl or .off"],)
 
 
 # --------------------------------------------------------------------------- run folders and checkpoints

@@ -1,6 +1,8 @@
 """Small things a user of the command line and of shared folders expects."""
 from __future__ import annotations
 
+import json
+
 import os
 import stat
 import subprocess
@@ -73,6 +75,9 @@ def test_mesh_verb_uses_the_runs_resolution(small_scene, tmp_path):
     assert main(["mesh", str(run), "--device", "cpu", "--out", str(tmp_path / "m.glb")]) == 0
     g = trimesh.load(tmp_path / "m.glb", force="mesh")
     assert len(g.vertices) > 0 and g.visual.kind == "vertex"
+    meta = json.loads((run / "run.json").read_text())  # run.json says what made the run and where
+    assert meta["fastneus_version"] and meta["command"].startswith("fastneus") or "pytest" in meta["command"]
+    assert meta["machine"]["cores"] >= 1 and meta["machine"]["python"] and meta["machine"]["torch"]
 
 
 def test_piped_training_prints_plain_progress_lines(small_scene, tmp_path, capsys):

@@ -217,8 +217,12 @@ def test_ply_writer_round_trip_and_obj(tmp_path):
     assert (tmp_path / "m2.ply").read_bytes() == (tmp_path / "m.ply").read_bytes()
     save_mesh(m, tmp_path / "m.obj")
     assert len(trimesh.load(tmp_path / "m.obj", force="mesh").faces) == len(m.faces)
-    with pytest.raises(FastneusError, match=r"\.ply, \.obj or \.glb"):
-        save_mesh(m, tmp_path / "m.stl")
+    for fmt in ("stl", "off"):  # other tools' formats through trimesh: the same faces come back
+        save_mesh(m, tmp_path / f"m.{fmt}")
+        back = trimesh.load(tmp_path / f"m.{fmt}", force="mesh", process=False)
+        assert len(back.faces) == len(m.faces) and abs(back.volume - m.to_trimesh().volume) < 1e-6 * max(1, back.volume)
+    with pytest.raises(FastneusError, match=r"\.ply, \.obj, \.glb, \.stl or \.off"):
+        save_mesh(m, tmp_path / "m.xyz")
     with pytest.raises(FastneusError, match="out of range"):
         write_ply(tmp_path / "bad.ply", m.vertices, m.faces + len(m.vertices))
     assert not (tmp_path / "bad.ply").exists()

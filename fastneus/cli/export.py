@@ -25,15 +25,15 @@ def _check_resolution(res: int | None) -> None:
 
 
 def _mesh(args) -> int:
-    from fastneus.export.mesh import extract_mesh_arrays, save_mesh, shade_mesh
+    from fastneus.export.mesh import MESH_SUFFIXES, extract_mesh_arrays, save_mesh, shade_mesh
 
     _check_resolution(args.resolution)
     if args.out is not None:
+        kinds = ", ".join(MESH_SUFFIXES[:-1]) + f" or {MESH_SUFFIXES[-1]}"
         if Path(args.out).is_dir():
-            raise FastneusError("is a folder; give a mesh file path ending in .ply, .obj or .glb", file=args.out,
-                                field="--out")
-        if Path(args.out).suffix.lower() not in (".ply", ".obj", ".glb"):
-            raise FastneusError("mesh output must end in .ply, .obj or .glb", file=args.out, field="--out")
+            raise FastneusError(f"is a folder; give a mesh file path ending in {kinds}", file=args.out, field="--out")
+        if Path(args.out).suffix.lower() not in MESH_SUFFIXES:
+            raise FastneusError(f"mesh output must end in {kinds}", file=args.out, field="--out")
         check_out_dir(Path(args.out).parent)
     device = resolve_device(args.device)
     scene, tr = open_run(args.run, device, args.scene)
@@ -94,7 +94,8 @@ def register(sub) -> None:
                                    "with vertex normals and the learned colours.")
     p.add_argument("run", help=RUN_HELP)
     p.add_argument("--resolution", type=int, default=None, help="marching-cubes grid (default: the run's export.mesh_resolution)")
-    p.add_argument("--out", help="PLY, OBJ or GLB path (default RUN/mesh.ply; vertex normals and colours included)")
+    p.add_argument("--out", help="PLY, OBJ, GLB, STL or OFF path (default RUN/mesh.ply; vertex normals and colours where the "
+                        "format holds them)")
     p.add_argument("--scene", help=SCENE_HELP)
     add_device_arg(p)
     p.set_defaults(func=_mesh)

@@ -605,13 +605,18 @@ def write_ply(path: str | Path, vertices: np.ndarray, faces: np.ndarray, normals
     return Path(path)
 
 
+MESH_SUFFIXES = (".ply", ".obj", ".glb", ".stl", ".off")
+
+
 def save_mesh(mesh, path: str | Path) -> Path:
-    """Write PLY (own writer), OBJ or GLB (trimesh) by suffix, atomically, with the vertex normals
-    and colours when the mesh has them. ``mesh``: MeshArrays or trimesh."""
+    """Write PLY (own writer), or OBJ, GLB, STL, OFF (trimesh) by suffix, atomically, with the
+    vertex normals and colours where the format holds them (STL keeps faces only, OFF vertex
+    colours without normals). ``mesh``: MeshArrays or trimesh."""
     path = Path(path)
     suffix = path.suffix.lower()
-    if suffix not in (".ply", ".obj", ".glb"):
-        raise FastneusError("mesh output must end in .ply, .obj or .glb", field=str(path))
+    if suffix not in MESH_SUFFIXES:
+        raise FastneusError(f"mesh output must end in {', '.join(MESH_SUFFIXES[:-1])} or {MESH_SUFFIXES[-1]}",
+                            field=str(path))
     if suffix == ".ply":  # a trimesh goes through the same writer (positions and faces)
         return write_ply(path, mesh.vertices, mesh.faces, getattr(mesh, "normals", None), getattr(mesh, "colors", None))
     tm = mesh.to_trimesh() if isinstance(mesh, MeshArrays) else mesh
