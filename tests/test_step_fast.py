@@ -108,3 +108,28 @@ def test_oneshot_is_budgeted_in_time_unless_steps_are_given():
     assert fixed.run.time_budget == 0 and fixed.run.steps == 300 and "time budget is off" in buf.getvalue()
     both = load_config("oneshot", ["steps=300", "time_budget=4"])
     assert _steps_over_budget(both, ["steps=300", "time_budget=4"], con).run.time_budget == 4
+
+
+def test_camera_blur_rays_average_to_the_blurred_pixel(small_scene, tmp_path):
+    """rays.camera_blur: each pixel is blur_rays rays around its centre, spread by the blur, and
+    the step compares their mean colour with the photo; 0 keeps one ray through the centre."""
+    from fastneus.train.trainer import Trainer
+
+    sc = Scene.load(small_scene)
+    cfg = load_config("cpu-quick", SMALL_RUN + ["threads=1", "camera_blur=0.7", "blur_rays=4"])
+    tr = Trainer(sc, cfg, tmp_path / "b", "cpu")
+    assert tr.blur_sub == 4
+    g = torch.Generator().manual_seed(3)
+    b = tr.bank.sample(50, g, blur=0.7, sub=4)
+    assert b["origins"].shape == (200, 3) and b["rgb"].shape == (50, 3) and b["fidx"].shape == (200,)
+    assert torch.equal(b["fidx"].view(50, 4), b["fidx"].view(50, 4)[:, :1].expand(50, 4))  # a pixel's rays: one frame
+    g = torch.Generator().manual_seed(3)
+    centre = tr.bank.sample(50, g)
+    # the rays spread around the centre ray by about the blur (0.7 px of a 24-px image's focal length)
+    spread = (b["dirs"].view(50, 4, 3) - centre["dirs"][:, None]).norm(dim=-1)
+    fx = float(sc.frame_camera(0).K[0, 0])
+    assert 0.1 / fx < float(spread.mean()) < 3.0 / fx
+    for _ in range(3):
+        rec = tr.train_step()
+    assert rec is not None and torch.isfinite(rec["loss"])
+    assert Trainer(sc, load_config("cpu-quick", SMALL_RUN), tmp_path / "c", "cpu").blur_sub == 1

@@ -149,14 +149,17 @@ class ShotBank:
 
     rays = RayBank.rays  # (view index, u, v) -> origins, dirs: the same maths, indexed per view
 
-    def sample(self, n: int, generator: torch.Generator | None = None, bright_fraction: float = 0.0):
+    def sample(self, n: int, generator: torch.Generator | None = None, bright_fraction: float = 0.0,
+               blur: float = 0.0, sub: int = 1):
         """``n`` random (view, pixel) rays, each with ``self.k`` of its shots.
 
         Returns:
             dict: fidx [n, k] int32 (rows of the projection table = positions in ``frames``),
             origins [n, 3], dirs [n, 3], rgb [n, k, 3] float in [0, 1] (linear), sat [n, k, 3] bool
             (saturated photo channels), mask [n] (if masks),
-            bg [n] (if ``background``), pix [n] int64 flat view-pixel index.
+            bg [n] (if ``background``), pix [n] int64 flat view-pixel index. ``blur``/``sub`` (the
+            camera's defocus as several rays per pixel) are for one-shot-per-ray banks only; the
+            trainer refuses them here.
         """
         g = generator
         flat, view, col, row = draw_pixels(self, n, g, bright_fraction)

@@ -7,6 +7,8 @@ Projectors are flattened to per-(frame, projector) matrices and one shared
 """
 from __future__ import annotations
 
+import math
+
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -255,18 +257,35 @@ class RayBank:
             d[sel] = w @ R.T
         return o.contiguous(), (d / d.norm(dim=-1, keepdim=True)).contiguous()
 
-    def sample(self, n: int, generator: torch.Generator | None = None, bright_fraction: float = 0.0):
+    def sample(self, n: int, generator: torch.Generator | None = None, bright_fraction: float = 0.0,
+               blur: float = 0.0, sub: int = 1):
         """``n`` random (frame, pixel) pairs: uniform over all pixels of all frames, except a
         ``bright_fraction`` share drawn in proportion to pixel brightness (needs ``brightness_cdf``).
 
+        With ``blur`` > 0 each pixel is ``sub`` rays through points spread around its centre by
+        a Gaussian of ``blur`` pixels (the camera's defocus: the caller averages their colours,
+        so the model is compared with the photo as the blurred lens formed it).
+
         Returns:
-            dict: fidx [n] int32, origins [n, 3], dirs [n, 3], rgb [n, 3] float in [0, 1] (linear:
+            dict: fidx [n * sub] int32, origins [n * sub, 3], dirs [n * sub, 3] (pixel-major: the
+            rays of pixel i are rows i*sub .. i*sub+sub-1), rgb [n, 3] float in [0, 1] (linear:
             through ``lut``), sat [n, 3] bool (the photo's channel is >= :data:`SATURATED`),
             mask [n] float (if masks), bg [n] float 1/0 (if ``background`` was given),
             pix [n] int64 flat pixel index.
         """
         flat, fidx, col, row = draw_pixels(self, n, generator, bright_fraction)
-        o, d = self.rays(fidx, col.float() + 0.5, row.float() + 0.5)
+        u, v = col.float() + 0.5, row.float() + 0.5
+        if blur > 0 and sub > 1:
+            # a quadrature of the Gaussian, not random draws: sub points on a circle of radius
+            # blur * sqrt(2) (the Gaussian's second moment), turned at random per pixel; random
+            # offsets left the mean of a few rays too noisy across a 1-2 px laser line
+            a = torch.rand(n, 1, device=self.device, generator=generator) * (2 * math.pi / sub) \
+                + torch.arange(sub, device=self.device) * (2 * math.pi / sub)         # [n, sub]
+            r = blur * math.sqrt(2.0)
+            u = (u[:, None] + r * torch.cos(a)).reshape(-1)
+            v = (v[:, None] + r * torch.sin(a)).reshape(-1)
+            fidx = fidx.repeat_interleave(sub)
+        o, d = self.rays(fidx, u, v)
         u8 = self.rgb[flat]
         out = {"fidx": fidx.to(torch.int32), "origins": o, "dirs": d, "rgb": to_linear(u8, self.lut),
                "sat": u8 >= SATURATED, "pix": flat}

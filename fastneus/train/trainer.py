@@ -28,7 +28,7 @@ from fastneus.train.progress import ProgressWriter
 from fastneus.train.rig import Rig
 from fastneus.train.rig import load_into as rig_load
 from fastneus.train.rig import state_of as rig_state
-from fastneus.train.rays import build_projection
+from fastneus.train.rays import RayBank, build_projection
 from fastneus.data.response import decode_lut, is_identity, resolve_response
 
 
@@ -169,6 +169,11 @@ class Trainer:
         # on CUDA the NaN guard gates the Adam update on the device: no host sync per step
         self._skipped_dev = torch.zeros((), dtype=torch.int64, device=self.device) if self.device.type == "cuda" else None
         self.empty_steps = 0        # consecutive steps whose rays found no occupied cell
+        # rays per training pixel: the camera's defocus as several rays averaged (rays.camera_blur)
+        self.blur_sub = cfg.rays.blur_rays if cfg.rays.camera_blur > 0 else 1
+        if self.blur_sub > 1 and not isinstance(self.bank, RayBank):
+            raise FastneusError("camera_blur needs one ray per shot (set group_shots=false for a multi-shot scene)",
+                                field="rays.camera_blur")
         # CUDA: the step after marching replayed as a captured graph (fastneus.train.graphstep)
         self.graphs = None
         if self.device.type == "cuda" and cfg.run.cuda_graph != "off":
@@ -275,7 +280,9 @@ class Trainer:
         self._set_lr(p)
         graphs = self.graphs if self.graphs is not None and self.graphs.eligible(self, p) else None
         n = graphs.ray_count(self.n_rays) if graphs is not None else self.n_rays
-        batch = self.rig.rays(self.bank.sample(n, self.gen, bright_fraction=c.rays.bright_fraction))
+        sub = self.blur_sub
+        batch = self.rig.rays(self.bank.sample(max(1, n // sub), self.gen, bright_fraction=c.rays.bright_fraction,
+                                               blur=c.rays.camera_blur, sub=sub))
         # a few uniform points for the eikonal term so the far field stays an SDF; they go through
         # the field in the same call as the samples (one hash + MLP pass instead of two)
         xr = torch.rand(max(256, n // 4), 3, device=self.device, generator=self.gen) * 2 - 1
@@ -330,16 +337,20 @@ class Trainer:
         pred = self.rig.composite(out["color"], out, c.rays.background)
         if self.log_gain is not None:  # the photo's exposure gain, before the camera clips
             pred = pred * losses.exposure_gain(self.log_gain, batch["fidx"])
+        opacity = out["opacity"]
+        if self.blur_sub > 1:  # the lens blurs before the sensor clips: a pixel is the mean of its rays
+            pred = pred.view(-1, self.blur_sub, *pred.shape[1:]).mean(1)
+            opacity = opacity.view(-1, self.blur_sub).mean(1)
         pred = pred.clamp(max=1.0)
         terms = losses.photometric(pred, batch["rgb"], c.loss.robust, c.loss.robust_eps, batch.get("sat"),
                                    c.loss.saturated)
         # eikonal on the samples plus the uniform points (evaluated with them in shade_samples)
         terms |= losses.eikonal(out["grad_all"], c.loss.eikonal_weight, valid=valid)
         if self.masks_used and "mask" in batch:
-            terms |= losses.mask_bce(out["opacity"], batch["mask"], c.loss.mask_weight)
+            terms |= losses.mask_bce(opacity, batch["mask"], c.loss.mask_weight)
         elif self.bg_used and "bg" in batch and p >= c.loss.bg_start_frac:
             ramp = losses.background_ramp(p, c.loss.bg_start_frac)
-            terms |= losses.background_free_space(out["opacity"], batch["bg"], ramp * c.loss.bg_weight)
+            terms |= losses.background_free_space(opacity, batch["bg"], ramp * c.loss.bg_weight)
         if self.prior is not None and p < c.init.prior_frac:
             w = losses.prior_fade(p, c.init.prior_weight, c.init.prior_frac)
             terms |= losses.surface_prior(self.prior.loss(self.field, fit_batch(c) // 2, self.gen, eikonal=False), w)
