@@ -181,6 +181,11 @@ class LossSection:
     bg_prior: str = knob("auto", "background pixels are free space without masks: auto (>= 5 % of pixels) | on | off",
                          choices=("auto", "on", "off"))
     bg_weight: float = knob(0.1, "weight of the background prior", lo=0.0)
+    bg_lit: str = knob("auto", "background prior only where the projectors light the ray's surface (a black pixel "
+                       "in a dark room says nothing of an unlit surface): auto (when >= 85 % of pixels are "
+                       "background colour) | on | off", choices=("auto", "on", "off"))
+    bg_lit_ref: float = knob(0.05, "projected light at a ray's surface that makes its black pixel fully background "
+                             "(bg_lit)", lo=0.0, lo_open=True)
     bg_start_frac: float = knob(0.2, "the background prior ramps in from this fraction of the run to twice it", **FRAC)
     bg_tolerance: float = knob(0.008, "per-channel distance to `background` still counted as it", lo=0.0)
     robust: str = knob("l1", "photometric penalty on |rendered - photo|: l1 | charbonnier | huber | cauchy "

@@ -133,3 +133,25 @@ def test_camera_blur_rays_average_to_the_blurred_pixel(small_scene, tmp_path):
         rec = tr.train_step()
     assert rec is not None and torch.isfinite(rec["loss"])
     assert Trainer(sc, load_config("cpu-quick", SMALL_RUN), tmp_path / "c", "cpu").blur_sub == 1
+
+
+def test_background_prior_in_a_dark_room_only_where_the_light_reaches(small_scene, tmp_path):
+    """bg_lit: auto turns on in a dark room (>= 85 % background pixels); shade_samples' ``lit``
+    is the projected light at each ray's surface (>= 0, zero for rays that miss every lit
+    sample), so a black pixel over an unlit surface is not pushed to empty space."""
+    from fastneus.field.renderer import march_samples, shade_samples
+    from fastneus.train.trainer import Trainer, resolve_bg_lit
+
+    cfg = load_config("cpu-quick")
+    assert resolve_bg_lit(cfg, 0.94) and not resolve_bg_lit(cfg, 0.6)
+    assert resolve_bg_lit(cfg.replace(bg_lit="on"), 0.1) and not resolve_bg_lit(cfg.replace(bg_lit="off"), 0.99)
+    tr = Trainer(Scene.load(small_scene), load_config("cpu-quick", SMALL_RUN + ["threads=1"]), tmp_path / "l", "cpu")
+    tr.train_step()
+    batch = tr.bank.sample(64, tr.gen)
+    smp = march_samples(tr.grid.bits, tr.grid.resolution, batch["origins"], batch["dirs"], tr.cfg, jitter=False)
+    i_r, i_b = tr.illumination()
+    out = shade_samples(tr.field, smp, tr.rig.projection(), batch["origins"], batch["dirs"], batch["fidx"], tr.cfg,
+                        i_r=i_r, i_b=i_b, cos_anneal=1.0, lit=True)
+    assert out["lit"].shape == (64,) and bool((out["lit"] >= 0).all()) and not out["lit"].requires_grad
+    assert float(out["lit"].max()) > 0  # the cross lasers reach some surfaces
+    assert float(out["lit"][out["opacity"] < 1e-4].abs().max() if (out["opacity"] < 1e-4).any() else 0) < 1e-6

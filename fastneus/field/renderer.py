@@ -99,9 +99,11 @@ def render_rays(field, bits: torch.Tensor, grid_res: int, proj, origins: torch.T
 def shade_samples(field, smp: dict, proj, origins: torch.Tensor, dirs: torch.Tensor, fidx: torch.Tensor, cfg, *,
                   i_r: torch.Tensor, i_b: torch.Tensor, cos_anneal: float, with_normals: bool = False,
                   curvature: bool = False, use_pattern: bool | None = None,
-                  extra_points: torch.Tensor | None = None) -> dict:
+                  extra_points: torch.Tensor | None = None, lit: bool = False) -> dict:
     """The field at the samples of :func:`march_samples` and their NeuS compositing with the
-    projected light (arguments and result as :func:`render_rays`).
+    projected light (arguments and result as :func:`render_rays`; ``lit``: also ``lit`` [B],
+    the projected light (summed over channels and projectors) at each ray's rendered surface,
+    weighted like its colour, without gradient).
 
     The sample arrays may be longer than the rays use (a captured step's fixed-capacity
     buffers): samples past every ray's ``offsets + counts`` are evaluated but composite into no
@@ -135,10 +137,11 @@ def shade_samples(field, smp: dict, proj, origins: torch.Tensor, dirs: torch.Ten
     has_pattern = pattern_on and getattr(proj, "has_pattern", True)
     split = pattern_pass_split(cfg, device) and has_pattern
 
-    def light(f: torch.Tensor):
+    def light(f: torch.Tensor, force: bool = False):
         """Projected light Q for frame rows ``f`` [B] computed apart (one thread per sample) and
-        handed to the render kernel, or None: the render kernel samples the patterns itself."""
-        if blur is None and not lights and port is None and sigma is None and not split:
+        handed to the render kernel, or None: the render kernel samples the patterns itself
+        (``force``: computed apart anyway, for :func:`shade_samples`' ``lit``)."""
+        if blur is None and not lights and port is None and sigma is None and not split and not force:
             return None
         q_ext, b = None, blur
         if b is not None or port is not None or sigma is not None or has_pattern:
@@ -157,11 +160,18 @@ def shade_samples(field, smp: dict, proj, origins: torch.Tensor, dirs: torch.Ten
     colors = []
     for k in range(shots.shape[1]):  # one render per shot over the same samples (weights are shared)
         f = shots[:, k].contiguous()
+        q = light(f)
         out = render(sdf, grad, color, pos, t0, t1, ray_index, offsets, counts, dirs, f,
                      proj.K, proj.W, pat, proj.store, field.inv_s(), float(cos_anneal), i_r, i_b,
-                     return_weights=with_normals and k == 0, q_ext=light(f))
+                     return_weights=(with_normals or lit) and k == 0, q_ext=q)
         if k == 0:
             res = dict(out)
+            if lit:  # how brightly the projectors light where this ray's surface is (no gradient)
+                with torch.no_grad():
+                    q = light(f, force=True) if q is None else q.detach()
+                    w = out["weights"].detach()
+                    res["lit"] = torch.zeros(n, device=device) if q is None else \
+                        torch.zeros(n, device=device).index_add_(0, ray_index.long(), w * q.sum(-1))
         colors.append(out["color"])
     if fidx.dim() == 2:
         res["color"] = torch.stack(colors, 1)

@@ -76,7 +76,17 @@ def resolve_bg_prior(cfg: Config, masks_used: bool, bg_fraction: float) -> tuple
         return False, "background prior: off"
     share = f"{100 * bg_fraction:.0f}% of training pixels are background colour {cfg.rays.background:g}"
     used = cfg.loss.bg_prior == "on" or bg_fraction >= 0.05
-    return used, f"background prior: {cfg.loss.bg_prior} -> {'on' if used else 'off'} ({share})"
+    note = f"background prior: {cfg.loss.bg_prior} -> {'on' if used else 'off'} ({share})"
+    if used and resolve_bg_lit(cfg, bg_fraction):
+        note += "; only where the projectors light the surface (a dark room: bg_lit)"
+    return used, note
+
+
+def resolve_bg_lit(cfg: Config, bg_fraction: float) -> bool:
+    """Whether the background prior counts a black pixel as empty only where the projected
+    light reaches the ray's surface (``loss.bg_lit``; auto: in a dark room, where almost every
+    pixel has the background colour and an unlit surface is as black as the backdrop)."""
+    return cfg.loss.bg_lit == "on" or (cfg.loss.bg_lit == "auto" and bg_fraction >= 0.85)
 
 
 def _configure_threads(requested: int) -> tuple[int, str]:
@@ -130,6 +140,7 @@ class Trainer:
         if getattr(self.bank, "empty_masks", None):  # all-zero masks: the object is outside those views (or a wrong file)
             self.masks_note += f"; warning: empty (all-zero) mask {', '.join(self.bank.empty_masks)}"
         self.bg_used, self.bg_note = resolve_bg_prior(cfg, self.masks_used, self.bank.bg_fraction)
+        self.bg_lit = self.bg_used and resolve_bg_lit(cfg, self.bank.bg_fraction)
         self.proj = build_projection(scene, self.frames, self.device, refraction=cfg.rig.refraction)
         self.rig = Rig(scene, self.frames, self.bank, self.proj, cfg.rig, self.device,  # real-rig corrections
                        split_patterns=pattern_pass_split(cfg, self.device))
@@ -328,19 +339,21 @@ class Trainer:
         """
         c = self.cfg
         i_r, i_b = self.illumination()
+        bg_on = not (self.masks_used and "mask" in batch) and self.bg_used and "bg" in batch and p >= c.loss.bg_start_frac
         out = shade_samples(self.field, smp, self.rig.projection(), batch["origins"], batch["dirs"], batch["fidx"], c,
                             i_r=i_r, i_b=i_b, cos_anneal=self.cos_anneal(p), curvature=c.loss.curvature_weight > 0,
-                            extra_points=xr)
+                            extra_points=xr, lit=bg_on and self.bg_lit)
         # the camera clips at 1: a rendered value above it is a saturated pixel, not an error
         # (unclipped, bright pattern pixels would pull i_r down on Normal-light scenes)
         # [B, 3], or [B, K, 3] with K shots per ray (multi-shot); + water (fastneus.train.rig)
         pred = self.rig.composite(out["color"], out, c.rays.background)
         if self.log_gain is not None:  # the photo's exposure gain, before the camera clips
             pred = pred * losses.exposure_gain(self.log_gain, batch["fidx"])
-        opacity = out["opacity"]
+        opacity, lit = out["opacity"], out.get("lit")
         if self.blur_sub > 1:  # the lens blurs before the sensor clips: a pixel is the mean of its rays
             pred = pred.view(-1, self.blur_sub, *pred.shape[1:]).mean(1)
             opacity = opacity.view(-1, self.blur_sub).mean(1)
+            lit = None if lit is None else lit.view(-1, self.blur_sub).mean(1)
         pred = pred.clamp(max=1.0)
         terms = losses.photometric(pred, batch["rgb"], c.loss.robust, c.loss.robust_eps, batch.get("sat"),
                                    c.loss.saturated)
@@ -348,9 +361,12 @@ class Trainer:
         terms |= losses.eikonal(out["grad_all"], c.loss.eikonal_weight, valid=valid)
         if self.masks_used and "mask" in batch:
             terms |= losses.mask_bce(opacity, batch["mask"], c.loss.mask_weight)
-        elif self.bg_used and "bg" in batch and p >= c.loss.bg_start_frac:
+        elif bg_on:
             ramp = losses.background_ramp(p, c.loss.bg_start_frac)
-            terms |= losses.background_free_space(opacity, batch["bg"], ramp * c.loss.bg_weight)
+            is_bg = batch["bg"]
+            if lit is not None:  # dark room: a black pixel is empty space only where a surface would be lit
+                is_bg = is_bg * (lit / c.loss.bg_lit_ref).clamp(max=1.0)
+            terms |= losses.background_free_space(opacity, is_bg, ramp * c.loss.bg_weight)
         if self.prior is not None and p < c.init.prior_frac:
             w = losses.prior_fade(p, c.init.prior_weight, c.init.prior_frac)
             terms |= losses.surface_prior(self.prior.loss(self.field, fit_batch(c) // 2, self.gen, eikonal=False), w)
