@@ -197,7 +197,7 @@ class StepPhases:
     are wrapped with a synchronising timer (``grid.update`` -> occupancy update, ``bank.sample``
     and ``rig.rays`` -> ray generation, the ``march_rays`` op -> marching, the field's
     ``encode``/``encode_jac`` -> hash encoding, ``sdf_and_grad``/``color`` less their encoding ->
-    MLPs, ``render_rays`` less the above -> rendering, ``opt.step`` -> optimiser). What no part
+    MLPs, ``shade_samples`` less the above -> rendering, the Adam update -> optimiser). What no part
     covers (the loss terms, ``backward``, the NaN guard, gauge fixing) is "loss + backward".
     Time inside the occupancy update (its SDF queries) stays in that phase. The synchronisations
     make a phased step slower than a plain one.
@@ -205,6 +205,8 @@ class StepPhases:
 
     def __init__(self, tr):
         self.tr, self.device = tr, str(tr.device)
+        if getattr(tr, "graphs", None) is not None:  # a replayed graph runs none of the wrapped calls:
+            tr.graphs.enabled = False               # the phases are those of the eager step
         self.ms = dict.fromkeys(PHASES, 0.0)
         self._stack: list[list] = []  # [phase, ms spent in nested wrapped calls]
         self._undo: list = []
@@ -241,7 +243,7 @@ class StepPhases:
         get_op = renderer.get_op
         self._patch(renderer, "get_op", lambda name, backend="warp": self._timed(
             "marching" if name == "march_rays" else "rendering", get_op(name, backend)))
-        self._patch(trainer_mod, "render_rays", "rendering")
+        self._patch(trainer_mod, "shade_samples", "rendering")
         self._patch(tr.grid, "update", "occupancy update")
         self._patch(tr.bank, "sample", "ray generation")
         self._patch(tr.rig, "rays", "ray generation")
@@ -249,7 +251,8 @@ class StepPhases:
             self._patch(tr.field, name, "hash encoding")
         for name in ("sdf_and_grad", "color"):
             self._patch(tr.field, name, "MLPs")
-        self._patch(tr.opt, "step", "optimiser")
+        for name in ("step", "gated_step", "device_update"):  # CPU, CUDA eager, CUDA captured
+            self._patch(tr.opt, name, "optimiser")
         return self
 
     def __exit__(self, *exc) -> None:
