@@ -146,7 +146,7 @@ def peak_memory(device) -> dict:
     return out
 
 
-PHASE_ORDER = ("startup", "synth", "scene_load", "imports", "cuda_init", "setup", "kernels", "train", "checkpoint",
+PHASE_ORDER = ("startup", "synth", "scene_load", "imports", "cuda_init", "setup", "kernels", "train", "validation", "checkpoint",
                "mesh", "renders", "eval", "report", "other", "total")
 
 
