@@ -146,8 +146,8 @@ def peak_memory(device) -> dict:
     return out
 
 
-PHASE_ORDER = ("startup", "synth", "scene_load", "imports", "cuda_init", "setup", "kernels", "train", "validation", "checkpoint",
-               "mesh", "renders", "eval", "report", "other", "total")
+PHASE_ORDER = ("startup", "synth", "scene_load", "imports", "cuda_init", "setup", "kernels", "train", "validation",
+               "checkpoint", "mesh", "renders", "eval", "report", "other", "total")
 
 
 def table(summary: dict) -> str:
