@@ -109,6 +109,8 @@ def finish_run(trainer, console=None, eval_frames: list[int] | None = None, mesh
                                                      "cells_s", "mc_s", "filter_s") if k in mesh.stats}
     clock.notes["mesh"]["resolution"] = int(res)
 
+    with clock.phase("validation"):  # the last validation render, kept off mesh.ply's path
+        trainer.finish_progress()
     frames = eval_frames if eval_frames is not None else default_eval_frames(scene, trainer.frames)
     with clock.phase("renders"):
         t = time.perf_counter()

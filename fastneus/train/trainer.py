@@ -481,9 +481,12 @@ class Trainer:
                     watch.maybe_validate(self.step, self.elapsed, force=True)
                     t_val += time.perf_counter()
         logf.close()
-        t_val -= time.perf_counter()
-        watch.finish(self.step, self.elapsed)
-        t_val += time.perf_counter()
+        if final_save:
+            t_val -= time.perf_counter()
+            watch.finish(self.step, self.elapsed)
+            t_val += time.perf_counter()
+        else:  # pipeline.finish_run writes the last validation render after mesh.ply (finish_progress)
+            self._watch = watch
         if final_save or self.stop_signal is not None:
             t_save -= time.perf_counter()
             self.save()
@@ -502,6 +505,13 @@ class Trainer:
             clock.add("validation", t_val)
             clock.add("train", time.perf_counter() - t_fit - t_kernels - t_save - t_val)
         return last
+
+    def finish_progress(self) -> None:
+        """The last validation render and the TensorBoard writer's close, when :meth:`fit` left
+        them for after mesh.ply (``final_save=False``: nothing after training delays the mesh)."""
+        watch, self._watch = getattr(self, "_watch", None), None
+        if watch is not None:
+            watch.finish(self.step, self.elapsed)
 
     def prime(self, report: dict | None = None) -> float:
         """Load (on a machine's first run: compile) every Warp kernel of a step before the clock
