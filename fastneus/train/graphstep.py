@@ -50,7 +50,13 @@ def sample_bucket(s: int) -> int:
 
 
 class _Entry:
-    """Static buffers of one captured step and its graph."""
+    """Static buffers of one captured step and its graph.
+
+    ``batch``: the ray batch's tensors at their step shapes (rays [R, ...], pixels [R / sub, ...]);
+    ``xr`` [E, 3] uniform points; ``smp``: offsets, counts [R] int32, t0, t1 [C] float32 and
+    ray_index [C] int32 padded to the capacity C (``n_samples`` = C); ``valid`` [C + E] 0/1 (the
+    live samples, then the uniform points, which are always live).
+    """
 
     def __init__(self, batch: dict, xr: torch.Tensor, smp: dict, capacity: int):
         dev = xr.device
