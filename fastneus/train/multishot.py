@@ -17,7 +17,7 @@ import numpy as np
 import torch
 
 from fastneus.errors import FastneusError
-from fastneus.train.rays import RayBank, SATURATED, background_codes, draw_pixels, lut_mean, normalised_camera, to_linear
+from fastneus.train.rays import RayBank, background_codes, draw_pixels, lut_mean, normalised_camera, pixel_fields
 
 
 def group_views(scene, frames: list[int]) -> list[list[int]]:
@@ -169,14 +169,8 @@ class ShotBank:
         else:  # k distinct-in-expectation shots among the view's own
             u = torch.rand(n, self.k, device=self.device, generator=g)
             slot = (u * self.n_shots[view][:, None]).long().clamp_max(self.rgb.shape[1] - 1)
-        u8 = self.rgb[flat[:, None], slot]
-        out = {"fidx": self.shot_row[view[:, None], slot], "origins": o, "dirs": d, "rgb": to_linear(u8, self.lut),
-               "sat": u8 >= SATURATED, "pix": flat}
-        if self.mask is not None:
-            out["mask"] = self.mask[flat].float() / 255.0
-        if self.bg is not None:
-            out["bg"] = self.bg[flat].float()
-        return out
+        return {"fidx": self.shot_row[view[:, None], slot], "origins": o, "dirs": d,
+                **pixel_fields(self, flat, self.rgb[flat[:, None], slot])}
 
 
 def make_bank(scene, frames: list[int], device, cfg, refraction: bool = True, **kw):

@@ -286,14 +286,7 @@ class RayBank:
             v = (v[:, None] + r * torch.sin(a)).reshape(-1)
             fidx = fidx.repeat_interleave(sub)
         o, d = self.rays(fidx, u, v)
-        u8 = self.rgb[flat]
-        out = {"fidx": fidx.to(torch.int32), "origins": o, "dirs": d, "rgb": to_linear(u8, self.lut),
-               "sat": u8 >= SATURATED, "pix": flat}
-        if self.mask is not None:
-            out["mask"] = self.mask[flat].float() / 255.0
-        if self.bg is not None:
-            out["bg"] = self.bg[flat].float()
-        return out
+        return {"fidx": fidx.to(torch.int32), "origins": o, "dirs": d, **pixel_fields(self, flat, self.rgb[flat])}
 
     def image_rays(self, a: int):
         """All rays of frame ``self.frames[a]`` in row-major order: (origins, dirs, (h, w))."""
@@ -313,6 +306,22 @@ class RayBank:
 def to_linear(u8: torch.Tensor, lut: torch.Tensor | None) -> torch.Tensor:
     """uint8 photo values (any shape) -> float linear values: ``lut[u8]``, or ``u8 / 255`` without one."""
     return u8.float() / 255.0 if lut is None else lut[u8.long()]
+
+
+def pixel_fields(bank, flat: torch.Tensor, u8: torch.Tensor) -> dict:
+    """What a batch carries per drawn pixel: its photo values (linear through ``bank.lut``), the
+    saturated channels, the flat index, and the mask and background flag when the bank has them.
+
+    Args:
+        bank: a RayBank or ShotBank (``lut``, ``mask``, ``bg``).
+        flat: [n] int64 flat pixel indices; u8: [n, ..., 3] uint8 photo values of those pixels.
+    """
+    out = {"rgb": to_linear(u8, bank.lut), "sat": u8 >= SATURATED, "pix": flat}
+    if bank.mask is not None:
+        out["mask"] = bank.mask[flat].float() / 255.0
+    if bank.bg is not None:
+        out["bg"] = bank.bg[flat].float()
+    return out
 
 
 def draw_pixels(bank, n: int, generator: torch.Generator | None, bright_fraction: float):
