@@ -125,22 +125,7 @@ class Adam:
                 lists[3].append(st["exp_avg_sq"])
                 lists[4].append((-g["lr"] / (1 - b1 ** t), 1.0 / math.sqrt(1 - b2 ** t)))
         for (b1, b2, eps, dtype), (ps, gs, ms, vs, sc) in buckets.items():
-            w = okf.to(dtype)
-            gs = [torch.nan_to_num(x, nan=0.0, posinf=0.0, neginf=0.0) for x in gs]
-            d = torch._foreach_sub(gs, ms)                  # m += ok (1 - b1) (g - m)
-            torch._foreach_mul_(d, w * (1 - b1))
-            torch._foreach_add_(ms, d)
-            d = torch._foreach_mul(gs, gs)                  # v += ok (1 - b2) (g^2 - v)
-            torch._foreach_sub_(d, vs)
-            torch._foreach_mul_(d, w * (1 - b2))
-            torch._foreach_add_(vs, d)
-            denom = torch._foreach_sqrt(vs)
-            torch._foreach_mul_(denom, [s[1] for s in sc])
-            torch._foreach_add_(denom, eps)
-            upd = torch._foreach_div(ms, denom)
-            torch._foreach_mul_(upd, [s[0] for s in sc])
-            torch._foreach_mul_(upd, w)
-            torch._foreach_add_(ps, upd)
+            _masked_update(ps, gs, ms, vs, okf.to(dtype), b1, b2, eps, [s[1] for s in sc], [s[0] for s in sc])
 
     # ---------------------------------------------------------------- a captured update
     def prepare_device_step(self) -> None:
@@ -186,23 +171,10 @@ class Adam:
             if not ps:
                 continue
             b1, b2 = g["betas"]
-            w = okf.to(ps[0].dtype)
-            gs = [torch.nan_to_num(p.grad, nan=0.0, posinf=0.0, neginf=0.0) for p in ps]
-            ms = [self.state[p]["exp_avg"] for p in ps]
-            vs = [self.state[p]["exp_avg_sq"] for p in ps]
-            d = torch._foreach_sub(gs, ms)
-            torch._foreach_mul_(d, w * (1 - b1))
-            torch._foreach_add_(ms, d)
-            d = torch._foreach_mul(gs, gs)
-            torch._foreach_sub_(d, vs)
-            torch._foreach_mul_(d, w * (1 - b2))
-            torch._foreach_add_(vs, d)
-            denom = torch._foreach_sqrt(vs)
-            torch._foreach_mul_(denom, self._scal[gi, 1].to(ps[0].dtype))
-            torch._foreach_add_(denom, g["eps"])
-            upd = torch._foreach_div(ms, denom)
-            torch._foreach_mul_(upd, self._scal[gi, 0].to(ps[0].dtype) * w)
-            torch._foreach_add_(ps, upd)
+            dt = ps[0].dtype
+            _masked_update(ps, [p.grad for p in ps], [self.state[p]["exp_avg"] for p in ps],
+                           [self.state[p]["exp_avg_sq"] for p in ps], okf.to(dt), b1, b2, g["eps"],
+                           self._scal[gi, 1].to(dt), self._scal[gi, 0].to(dt))
 
     # ------------------------------------------------------------------ checkpoints
     def state_dict(self) -> dict:
@@ -242,3 +214,26 @@ class Adam:
             self.state[p] = {"step": int(step.item() if torch.is_tensor(step) else step),
                              "exp_avg": st["exp_avg"].to(device=p.device, dtype=p.dtype).clone(),
                              "exp_avg_sq": st["exp_avg_sq"].to(device=p.device, dtype=p.dtype).clone()}
+
+
+def _masked_update(ps: list, gs: list, ms: list, vs: list, w: torch.Tensor, b1: float, b2: float, eps: float,
+                   inv_bc2_sqrt, step_scale) -> None:
+    """Adam's arithmetic moved by ``w`` (0 or 1, a device scalar): non-finite gradients zeroed
+    (0 * NaN is NaN), m += w (1 - b1) (g - m), v += w (1 - b2) (g^2 - v), p += w * step_scale *
+    m / (sqrt(v) inv_bc2_sqrt + eps). ``inv_bc2_sqrt`` and ``step_scale`` (-lr / bc1) are a list
+    of floats (one per tensor) or a device scalar (a captured step reads it at replay)."""
+    gs = [torch.nan_to_num(x, nan=0.0, posinf=0.0, neginf=0.0) for x in gs]
+    d = torch._foreach_sub(gs, ms)
+    torch._foreach_mul_(d, w * (1 - b1))
+    torch._foreach_add_(ms, d)
+    d = torch._foreach_mul(gs, gs)
+    torch._foreach_sub_(d, vs)
+    torch._foreach_mul_(d, w * (1 - b2))
+    torch._foreach_add_(vs, d)
+    denom = torch._foreach_sqrt(vs)
+    torch._foreach_mul_(denom, inv_bc2_sqrt)
+    torch._foreach_add_(denom, eps)
+    upd = torch._foreach_div(ms, denom)
+    torch._foreach_mul_(upd, step_scale)
+    torch._foreach_mul_(upd, w)
+    torch._foreach_add_(ps, upd)
