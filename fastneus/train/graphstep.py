@@ -104,10 +104,6 @@ class StepGraphs:
         self.captured = self.replayed = self.eager = 0
         trainer.field.enable_device_schedule()
 
-    @staticmethod
-    def ray_bucket(n: int) -> int:
-        return ray_bucket(n)
-
     def eligible(self, tr, p: float) -> bool:
         """Whether this step's compute part is the same graph as any other step's with its key."""
         c = tr.cfg
@@ -140,8 +136,8 @@ class StepGraphs:
     def _capacity(self, tr, batch: dict, s: int, p: float) -> int:
         """The smallest cached capacity for this key that holds ``s`` samples with at most 20 %
         padding, else a new one 5 % above ``s`` (the count jitters by a few % per step)."""
-        fits = [k[1] for k in self.cache if k[0] == batch["origins"].shape[0] and s <= k[1] <= 1.2 * s
-                and k[2:] == self._key(tr, batch, 0, p)[2:]]
+        rest = self._key(tr, batch, 0, p)
+        fits = [k[1] for k in self.cache if k[0] == rest[0] and s <= k[1] <= 1.2 * s and k[2:] == rest[2:]]
         return min(fits) if fits else sample_bucket(int(s * 1.05) + 1)
 
     def step(self, tr, batch: dict, xr: torch.Tensor, smp: dict, p: float) -> dict | None:
