@@ -560,7 +560,14 @@ def load_config(config: str | None = None, overrides: list[str] | None = None,
         cfg = apply(cfg, data, label)
     if base:
         cfg = apply(cfg, base, "command line")
-    cfg = apply(cfg, parse_overrides(overrides), "command line")
+    parsed = parse_overrides(overrides)
+    cfg = apply(cfg, parsed, "command line")
+    # a step count asked for wins over a time budget the preset or the run set (the oneshot preset
+    # is budgeted in time): steps=3000 means 3000 steps
+    asked = {k.rsplit(".", 1)[-1] for k in parsed}
+    if "steps" in asked and "time_budget" not in asked and cfg.run.time_budget > 0:
+        notes.append(f"steps={cfg.run.steps} given: the {cfg.run.time_budget:g}-s time budget is off")
+        cfg = apply(cfg, {"run.time_budget": 0.0}, "command line")
     for n in notes:  # only once everything loaded: an error stays one line
         _note(n)
     return cfg

@@ -57,7 +57,6 @@ def _run(args, tag: str, default_preset: str, oneshot_frame: int | None = None) 
     else:
         cfg = load_config(preset, list(args.overrides or []) + threads_override(args), base=base)
     con = _console()
-    cfg = _steps_over_budget(cfg, args.overrides or [], con)
     con.print(f"[bold]fastneus {tag}[/bold]: scene {args.scene} ({len(scene.frames)} frames, "
               f"{len(cfg.run.frames) if cfg.run.frames else len(scene.frames)} used), preset {cfg.run.preset}, "
               f"device {device}, backend {cfg.run.backend} -> {out}")
@@ -70,16 +69,6 @@ def _run(args, tag: str, default_preset: str, oneshot_frame: int | None = None) 
     print_run_summary(metrics, con)
     con.print(f"report: {out / 'report.html'}")
     return 0
-
-
-def _steps_over_budget(cfg, overrides: list[str], con):
-    """A step count given on the command line wins over a preset's time budget (the oneshot
-    preset is budgeted in time): ``steps=3000`` means 3000 steps; said on the console."""
-    keys = {o.split("=", 1)[0].strip().rsplit(".", 1)[-1] for o in overrides if "=" in o}
-    if "steps" in keys and "time_budget" not in keys and cfg.run.time_budget > 0:
-        con.print(f"steps={cfg.run.steps} given: the preset's {cfg.run.time_budget:g}-s time budget is off")
-        return cfg.replace(time_budget=0.0)
-    return cfg
 
 
 def add_config_args(p: argparse.ArgumentParser) -> None:
