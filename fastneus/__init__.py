@@ -15,7 +15,16 @@ Everything else is internal and may move; docs/ARCHITECTURE.md shows the layers.
 from __future__ import annotations
 
 import importlib
+import os
 from typing import Any
+
+# torch's OpenMP workers (libgomp) spin for 300,000 iterations after each parallel op by
+# default, holding the core that the Warp kernels' CPU threads need next: 2 threads made
+# only 1.17x the steps of 1. A short spin frees the core and keeps torch's wake-ups cheap
+# (docs/perf-notes/2026-11-26-cpu-threads.md). libgomp reads it when torch loads it, so it
+# is set here, before any torch import; a user's own setting wins.
+if "GOMP_SPINCOUNT" not in os.environ and "OMP_WAIT_POLICY" not in os.environ:
+    os.environ["GOMP_SPINCOUNT"] = "30000"
 
 __version__ = "0.1.0"
 

@@ -112,3 +112,19 @@ def test_cli_train_times_each_phase_from_process_start(small_scene, tmp_path):
     assert (run / "checkpoint.pt").is_file()
     page = (run / "report.html").read_text()
     assert "Wall clock (seconds from process start)" in page and "mesh_ready_at" in page and "{&#x27;" not in page
+
+
+def _spin_after_import(env_extra: dict) -> str:
+    env = {k: v for k, v in os.environ.items() if k not in ("GOMP_SPINCOUNT", "OMP_WAIT_POLICY")}
+    env.update(env_extra)
+    code = "import os, fastneus, sys; print(os.environ.get('GOMP_SPINCOUNT'), 'torch' in sys.modules)"
+    return subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
+                          env=env).stdout.split()
+
+
+def test_import_shortens_openmp_spin_before_torch_loads():
+    # torch's libgomp reads GOMP_SPINCOUNT when it loads: fastneus must set it on import, while
+    # torch is not loaded yet, and leave a user's own OpenMP settings alone
+    assert _spin_after_import({}) == ["30000", "False"]
+    assert _spin_after_import({"GOMP_SPINCOUNT": "7"})[0] == "7"
+    assert _spin_after_import({"OMP_WAIT_POLICY": "ACTIVE"})[0] == "None"
