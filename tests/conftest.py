@@ -36,7 +36,8 @@ def one_line_error(capsys, *needles: str) -> str:
 
 def scene_on(small_scene, tmp_path, device: str):
     """The ``small_scene`` folder, or on CUDA the same scene rendered on the GPU into ``tmp_path``
-    (a GPU machine may have no CPU compiler for Warp)."""
+    (a GPU machine may have no CPU compiler for Warp, so a CUDA test passes None for
+    ``small_scene`` rather than requesting that CPU-built fixture)."""
     if device == "cpu":
         return small_scene
     path = tmp_path / "sphere3-cuda"

@@ -139,12 +139,13 @@ def test_device_schedule_gives_the_same_field_and_table_gradients(small_scene, t
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="CUDA graphs need a CUDA device")
-def test_cuda_replayed_graph_matches_the_eager_step(small_scene, tmp_path):
+def test_cuda_replayed_graph_matches_the_eager_step(tmp_path):
     """Graph steps (first: eager on the side stream + capture; then replays) against eager
-    steps on the same inputs: the same loss and parameters after every step."""
+    steps on the same inputs: the same loss and parameters after every step. The scene is
+    rendered on the GPU (no small_scene: a GPU machine may have no CPU compiler for Warp)."""
     from fastneus.train.graphstep import StepGraphs
 
-    a, b = _pair(scene_on(small_scene, tmp_path, "cuda"), tmp_path, "cuda")
+    a, b = _pair(scene_on(None, tmp_path, "cuda"), tmp_path, "cuda")
     a.field._dev_sched = False  # StepGraphs switches it on
     graphs = StepGraphs(a)
     p = 0.5
