@@ -56,7 +56,8 @@ def test_a_key_in_the_wrong_section_is_refused():
     assert "optim.lr" in str(e.value) and "unknown" in str(e.value)
 
 
-def test_saved_configs_round_trip_and_old_flat_ones_load(tmp_path, capsys):
+def test_saved_configs_round_trip_and_old_flat_ones_load(tmp_path, capsys, monkeypatch):
+    monkeypatch.setattr("fastneus.config._NOTED", set())  # a note prints once per process: another test may have
     cfg = load_config("oneshot", ["steps=77"])
     again = config_from_dict(yaml.safe_load(yaml.safe_dump(cfg.to_dict())), "run/config.yaml")
     assert again == cfg
