@@ -187,6 +187,15 @@ class LossSection:
     bg_lit_ref: float = knob(0.05, "projected light at a ray's surface that makes its black pixel fully background "
                              "(bg_lit)", lo=0.0, lo_open=True)
     bg_start_frac: float = knob(0.2, "the background prior ramps in from this fraction of the run to twice it", **FRAC)
+    fg_prior: str = knob("auto", "without masks, pixels brighter than the background colour by fg_threshold pull "
+                         "their ray's opacity to 1 (the mask's other half, read off the photo: keeps thin parts "
+                         "that only ambient light shows): auto (with the background prior in a dark room, >= 85 % "
+                         "background pixels; the background prior then carves every black pixel) | on | off",
+                         choices=("auto", "on", "off"))
+    fg_threshold: float = knob(0.02, "linear brightness above the background colour that makes a pixel foreground "
+                               "(fg_prior)", lo=0.0, lo_open=True)
+    fg_start_frac: float = knob(0.2, "the foreground prior acts from this fraction of the run (from the start it "
+                                "grew blobs: ant Dark 14.6 vs 5.3 mm GT->rec)", **FRAC)
     bg_tolerance: float = knob(0.008, "per-channel distance to `background` still counted as it", lo=0.0)
     robust: str = knob("l1", "photometric penalty on |rendered - photo|: l1 | charbonnier | huber | cauchy "
                        "(scale robust_eps)", choices=("l1", "charbonnier", "huber", "cauchy"))

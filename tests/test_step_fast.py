@@ -128,13 +128,14 @@ def test_camera_blur_rays_average_to_the_blurred_pixel(small_scene, tmp_path):
 
 
 def test_background_prior_in_a_dark_room_only_where_the_light_reaches(small_scene, tmp_path):
-    """bg_lit: auto turns on in a dark room (>= 85 % background pixels); shade_samples' ``lit``
+    """bg_lit: auto turns on in a dark room (>= 85 % background pixels) without the foreground
+    prior; shade_samples' ``lit``
     is the projected light at each ray's surface (>= 0, zero for rays that miss every lit
     sample), so a black pixel over an unlit surface is not pushed to empty space."""
     from fastneus.field.renderer import march_samples, shade_samples
     from fastneus.train.trainer import Trainer, resolve_bg_lit
 
-    cfg = load_config("cpu-quick")
+    cfg = load_config("cpu-quick").replace(fg_prior="off")  # with the foreground prior, auto keeps bg_lit off
     assert resolve_bg_lit(cfg, 0.94) and not resolve_bg_lit(cfg, 0.6)
     assert resolve_bg_lit(cfg.replace(bg_lit="on"), 0.1) and not resolve_bg_lit(cfg.replace(bg_lit="off"), 0.99)
     tr = Trainer(Scene.load(small_scene), load_config("cpu-quick", SMALL_RUN + ["threads=1"]), tmp_path / "l", "cpu")
@@ -150,3 +151,27 @@ def test_background_prior_in_a_dark_room_only_where_the_light_reaches(small_scen
     # light a sample can get (3 channels of at most 1 per projector)
     n_proj = len(Scene.load(small_scene).projectors)
     assert bool((out["lit"] <= out["opacity"].detach() * 3 * n_proj + 1e-6).all())
+
+
+def test_foreground_prior_in_a_dark_room_pulls_bright_pixels_to_full_opacity(small_scene, tmp_path):
+    """fg_prior: auto is on with the background prior in a dark room (and then the background
+    prior carves every black pixel: bg_lit off); its term pulls opacity up only at pixels
+    brighter than the backdrop, and a training step with it on logs the term."""
+    from fastneus.train import losses
+    from fastneus.train.trainer import Trainer, resolve_bg_lit, resolve_fg_prior
+
+    cfg = load_config("cpu-quick")
+    assert resolve_fg_prior(cfg, True, 0.94) and not resolve_bg_lit(cfg, 0.94)
+    assert not resolve_fg_prior(cfg, True, 0.6) and not resolve_fg_prior(cfg, False, 0.99)  # lit room; masks
+    assert resolve_fg_prior(cfg.replace(fg_prior="on"), True, 0.1)
+    assert not resolve_fg_prior(cfg.replace(fg_prior="off"), True, 0.99) and resolve_bg_lit(cfg.replace(fg_prior="off"), 0.99)
+    op = torch.tensor([0.2, 0.2, 0.9], requires_grad=True)
+    losses.foreground_opacity(op, torch.tensor([1.0, 0.0, 1.0]), 0.1)["foreground"].backward()
+    assert op.grad[0] < op.grad[2] < 0 and op.grad[1] == 0  # up where foreground, most where least opaque
+    run = SMALL_RUN + ["threads=1", "masks=off", "bg_prior=on", "fg_prior=on", "bg_start_frac=0", "log_every=1"]
+    tr = Trainer(Scene.load(small_scene), load_config("cpu-quick", run), tmp_path / "f", "cpu")
+    assert tr.fg_used and "foreground prior" in tr.bg_note
+    out = tr.train_step()
+    assert out is not None and float(out["loss"]) > 0
+    assert not Trainer(Scene.load(small_scene), load_config("cpu-quick", run[:-3] + ["fg_prior=off"]), tmp_path / "g",
+                       "cpu").fg_used

@@ -8,7 +8,7 @@ from __future__ import annotations
 import torch
 
 # the order terms are summed in (fixed, so a run is reproducible bit for bit)
-TERMS = ("rgb", "eikonal", "mask", "background", "prior", "curvature")
+TERMS = ("rgb", "eikonal", "mask", "background", "foreground", "prior", "curvature")
 
 
 def penalty(err: torch.Tensor, robust: str = "l1", eps: float = 0.01) -> torch.Tensor:
@@ -119,6 +119,18 @@ def background_free_space(opacity: torch.Tensor, is_bg: torch.Tensor, weight: fl
     """
     op = opacity.clamp(max=1 - 1e-3)
     return {"background": -(weight * (is_bg * torch.log1p(-op)).mean())}
+
+
+def foreground_opacity(opacity: torch.Tensor, is_fg: torch.Tensor, weight: float) -> dict[str, torch.Tensor]:
+    """One-sided prior without masks: pixels clearly brighter than the background are pushed to
+    full opacity (the object is there), the others are free.
+
+    Args:
+        opacity: [B]; is_fg: [B] 1 where the photo is brighter than the background colour by
+            ``loss.fg_threshold``; weight: the prior's weight.
+    """
+    op = opacity.clamp(min=1e-3)
+    return {"foreground": -(weight * (is_fg * torch.log(op)).mean())}
 
 
 def background_ramp(p: float, start_frac: float) -> float:

@@ -77,16 +77,35 @@ def resolve_bg_prior(cfg: Config, masks_used: bool, bg_fraction: float) -> tuple
     share = f"{100 * bg_fraction:.0f}% of training pixels are background colour {cfg.rays.background:g}"
     used = cfg.loss.bg_prior == "on" or bg_fraction >= 0.05
     note = f"background prior: {cfg.loss.bg_prior} -> {'on' if used else 'off'} ({share})"
+    if used and resolve_fg_prior(cfg, used, bg_fraction):
+        note += (f"; with a foreground prior: pixels brighter than the background by {cfg.loss.fg_threshold:g} "
+                 "are the object (fg_prior)")
     if used and resolve_bg_lit(cfg, bg_fraction):
         note += "; only where the projectors light the surface (a dark room: bg_lit)"
     return used, note
 
 
+DARK_ROOM = 0.85  # share of background-colour pixels that makes a scene a dark room (lasers only)
+
+
+def resolve_fg_prior(cfg: Config, bg_used: bool, bg_fraction: float) -> bool:
+    """Whether pixels clearly brighter than the background pull their rays to full opacity
+    (``loss.fg_prior``; the mask's other half, read off the photo). auto: with the background
+    prior in a dark room, where the thin parts that no laser line crosses are seen only as
+    dim, ambient-lit pixels and nothing else makes the model put surface there."""
+    if not bg_used or cfg.loss.fg_prior == "off":
+        return False
+    return cfg.loss.fg_prior == "on" or bg_fraction >= DARK_ROOM
+
+
 def resolve_bg_lit(cfg: Config, bg_fraction: float) -> bool:
     """Whether the background prior counts a black pixel as empty only where the projected
     light reaches the ray's surface (``loss.bg_lit``; auto: in a dark room, where almost every
-    pixel has the background colour and an unlit surface is as black as the backdrop)."""
-    return cfg.loss.bg_lit == "on" or (cfg.loss.bg_lit == "auto" and bg_fraction >= 0.85)
+    pixel has the background colour and an unlit surface is as black as the backdrop, unless
+    the foreground prior marks the object's pixels: then every black pixel is empty space)."""
+    if cfg.loss.bg_lit == "auto" and resolve_fg_prior(cfg, True, bg_fraction):
+        return False
+    return cfg.loss.bg_lit == "on" or (cfg.loss.bg_lit == "auto" and bg_fraction >= DARK_ROOM)
 
 
 def _configure_threads(requested: int) -> tuple[int, str]:
@@ -141,6 +160,7 @@ class Trainer:
             self.masks_note += f"; warning: empty (all-zero) mask {', '.join(self.bank.empty_masks)}"
         self.bg_used, self.bg_note = resolve_bg_prior(cfg, self.masks_used, self.bank.bg_fraction)
         self.bg_lit = self.bg_used and resolve_bg_lit(cfg, self.bank.bg_fraction)
+        self.fg_used = self.bg_used and resolve_fg_prior(cfg, self.bg_used, self.bank.bg_fraction)
         self.proj = build_projection(scene, self.frames, self.device, refraction=cfg.rig.refraction)
         self.rig = Rig(scene, self.frames, self.bank, self.proj, cfg.rig, self.device,  # real-rig corrections
                        split_patterns=pattern_pass_split(cfg, self.device))
@@ -367,6 +387,11 @@ class Trainer:
             if lit is not None:  # dark room: a black pixel is empty space only where a surface would be lit
                 is_bg = is_bg * (lit / c.loss.bg_lit_ref).clamp(max=1.0)
             terms |= losses.background_free_space(opacity, is_bg, ramp * c.loss.bg_weight)
+        if self.fg_used and "mask" not in batch and p >= c.loss.fg_start_frac:
+            # a pixel (any of its shots, any channel) clearly above the backdrop: the object is there
+            rgb = batch["rgb"]
+            is_fg = ((rgb.reshape(rgb.shape[0], -1).amax(-1) - c.rays.background) > c.loss.fg_threshold).float()
+            terms |= losses.foreground_opacity(opacity, is_fg, c.loss.bg_weight)
         if self.prior is not None and p < c.init.prior_frac:
             w = losses.prior_fade(p, c.init.prior_weight, c.init.prior_frac)
             terms |= losses.surface_prior(self.prior.loss(self.field, fit_batch(c) // 2, self.gen, eikonal=False), w)
