@@ -97,10 +97,13 @@ class RaysSection:
     bound: str = knob("sphere", "region of interest in normalised space: sphere | box", choices=("sphere", "box"),
                       model=True)
     background: float = knob(0.0, "background colour behind the object (synthetic data: black)", lo=0.0, hi=1.0)
-    camera_blur: float = knob(0.0, "camera defocus, Gaussian sigma in pixels: each training pixel is blur_rays "
-                              "rays spread by it, their colours averaged before the loss (0 = one ray per "
-                              "pixel through its centre)", lo=0.0, hi=10.0)
-    blur_rays: int = knob(4, "rays per training pixel when camera_blur > 0", lo=2, hi=16)
+    camera_blur: float = knob(0.0, "camera blur (lens defocus + the pixel's area), Gaussian sigma in pixels, "
+                              "applied as blur_via says (0 = one ray per pixel through its centre)", lo=0.0, hi=10.0)
+    blur_via: str = knob("pattern", "how camera_blur enters the model: pattern = the projected light only, each "
+                         "pattern image blurred once by it in projector pixels (no cost per step); rays = each "
+                         "training pixel is blur_rays rays spread by it, their colours averaged",
+                         choices=("pattern", "rays"))
+    blur_rays: int = knob(4, "rays per training pixel when camera_blur > 0 and blur_via=rays", lo=2, hi=16)
     bright_fraction: float = knob(0.5, "share of rays drawn in proportion to pixel brightness (sparse laser lines)",
                                   **FRAC)
     group_shots: bool = knob(True, "multi-shot: one ray per viewpoint pixel carries its shots (false = separate)")

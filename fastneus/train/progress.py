@@ -178,7 +178,8 @@ class ProgressWriter:
         scene = rig.eval_scene() if posed_on else tr.scene
         refr = tr.cfg.rig.refraction
         bank = RayBank(scene, [self.frame], tr.device, refraction=refr)
-        proj = build_projection(scene, [self.frame], tr.device, refraction=refr)
+        proj = build_projection(scene, [self.frame], tr.device, refraction=refr,
+                                camera_blur=getattr(tr, "pattern_blur", 0.0))
         if not posed_on:
             self._bank = (bank, proj)
         return bank, proj

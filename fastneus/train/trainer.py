@@ -141,7 +141,10 @@ class Trainer:
             self.masks_note += f"; warning: empty (all-zero) mask {', '.join(self.bank.empty_masks)}"
         self.bg_used, self.bg_note = resolve_bg_prior(cfg, self.masks_used, self.bank.bg_fraction)
         self.bg_lit = self.bg_used and resolve_bg_lit(cfg, self.bank.bg_fraction)
-        self.proj = build_projection(scene, self.frames, self.device, refraction=cfg.rig.refraction)
+        # the camera's blur on the projected light (fastneus.train.camblur; blur_via=rays: as rays below)
+        self.pattern_blur = cfg.rays.camera_blur if cfg.rays.blur_via == "pattern" else 0.0
+        self.proj = build_projection(scene, self.frames, self.device, refraction=cfg.rig.refraction,
+                                     camera_blur=self.pattern_blur)
         self.rig = Rig(scene, self.frames, self.bank, self.proj, cfg.rig, self.device,  # real-rig corrections
                        split_patterns=pattern_pass_split(cfg, self.device))
         self.field = SDFField(cfg.hashgrid, cfg.network, self.device, backend=cfg.run.backend)
@@ -181,7 +184,7 @@ class Trainer:
         self._skipped_dev = torch.zeros((), dtype=torch.int64, device=self.device) if self.device.type == "cuda" else None
         self.empty_steps = 0        # consecutive steps whose rays found no occupied cell
         # rays per training pixel: the camera's defocus as several rays averaged (rays.camera_blur)
-        self.blur_sub = cfg.rays.blur_rays if cfg.rays.camera_blur > 0 else 1
+        self.blur_sub = cfg.rays.blur_rays if cfg.rays.camera_blur > 0 and cfg.rays.blur_via == "rays" else 1
         if self.blur_sub > 1 and not isinstance(self.bank, RayBank):
             raise FastneusError("camera_blur needs one ray per shot (set group_shots=false for a multi-shot scene)",
                                 field="rays.camera_blur")
@@ -293,7 +296,7 @@ class Trainer:
         n = graphs.ray_count(self.n_rays) if graphs is not None else self.n_rays
         sub = self.blur_sub
         batch = self.rig.rays(self.bank.sample(max(1, n // sub), self.gen, bright_fraction=c.rays.bright_fraction,
-                                               blur=c.rays.camera_blur, sub=sub))
+                                               blur=c.rays.camera_blur if sub > 1 else 0.0, sub=sub))
         # a few uniform points for the eikonal term so the far field stays an SDF; they go through
         # the field in the same call as the samples (one hash + MLP pass instead of two)
         xr = torch.rand(max(256, n // 4), 3, device=self.device, generator=self.gen) * 2 - 1
