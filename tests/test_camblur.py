@@ -96,3 +96,120 @@ def test_camera_blur_on_the_patterns_changes_only_the_patterns(tmp_path):
     assert not torch.equal(sa, sb)
     assert float(sb.sum()) == pytest.approx(float(sa.sum()), rel=0.05)  # the light is spread, not lost
     assert float(sb.max()) < float(sa.max())
+
+
+# --------------------------------------------------------------------------- camera_blur=auto
+def test_fit_illumination_recovers_the_light_despite_outliers():
+    from fastneus.train.camblur import fit_illumination
+
+    rng = np.random.default_rng(0)
+    n = 4000
+    c0 = rng.uniform(0.05, 0.3, n)
+    a = rng.uniform(0.0, 1.0, n) * (rng.uniform(size=n) < 0.3)  # the projected light: lines on some pixels
+    b = a * c0 * rng.uniform(2, 4, n)
+    y = c0 + 0.1 * a + 0.4 * b + rng.normal(0, 0.002, n)
+    y[rng.choice(n, 200, replace=False)] += 0.3  # e.g. specular glints: an L1 fit ignores them
+    i_r, i_b, res = fit_illumination(y, c0, a, b)
+    assert i_r == pytest.approx(0.4, abs=0.01) and i_b == pytest.approx(0.1, abs=0.01)
+    assert res < 0.02
+
+
+def test_pick_sigma_refines_the_grid_minimum():
+    from fastneus.train.camblur import AUTO_SIGMAS, pick_sigma
+
+    s = np.asarray(AUTO_SIGMAS)
+    assert pick_sigma(s, (s - 0.62) ** 2 + 1.0) == pytest.approx(0.62, abs=1e-6)
+    assert pick_sigma(s, s + 1.0) == 0.0  # the sharpest candidate at the edge: no extrapolation
+    assert pick_sigma(s, -s) == 1.5
+
+
+@pytest.mark.parametrize("true_sigma", [0.0, 0.6])
+def test_auto_blur_recovers_a_known_blur_with_a_fixed_field(tmp_path, true_sigma):
+    """camera_blur=auto's estimate on a fixed field: the photos are the field's own render with the
+    patterns blurred by a known sigma (i_r 0.4, i_b 0.1); the estimate picks that sigma back, 0
+    for sharp photos, and recovers the light in closed form."""
+    import dataclasses
+
+    from fastneus.config import load_config
+    from fastneus.field.renderer import march_samples, shade_samples
+    from fastneus.synth.render import synthesize
+    from fastneus.train.camblur import estimate_blur_by_render
+    from fastneus.train.rays import build_projection
+    from fastneus.train.trainer import Trainer
+
+    scene = synthesize(tmp_path / "s", shape="sphere", views=2, size=(48, 48), pattern="crosslaser",
+                       device="cpu", noise=0.0, proj_size=(128, 96), progress=False, contact_sheet=False)
+    cfg = load_config("cpu-quick", ["threads=1", "camera_blur=0", "occ_resolution=16", "log2_table=12",
+                                    "levels=4", "finest_res=64"])
+    tr = Trainer(scene, cfg, tmp_path / "r", "cpu")
+    tr.update_grid(0.0)  # warm-up grid: every cell occupied, the field's initial sphere is the surface
+    store = build_projection(scene, tr.frames, "cpu", camera_blur=true_sigma).store
+    photo_proj = dataclasses.replace(tr.proj, store=store)
+    sample = tr.bank.sample
+
+    def photos(n, gen, **kw):  # the "camera": the field rendered through the blurred patterns
+        b = sample(n, gen, **kw)
+        smp = march_samples(tr.grid.bits, tr.grid.resolution, b["origins"], b["dirs"], cfg, jitter=False)
+        with torch.no_grad():
+            out = shade_samples(tr.field, smp, photo_proj, b["origins"], b["dirs"], b["fidx"], cfg,
+                                i_r=torch.tensor([0.4]), i_b=torch.tensor([0.1]), cos_anneal=tr.cos_anneal())
+        b["rgb"] = tr.rig.composite(out["color"], out, cfg.rays.background).clamp(max=1.0)
+        b["sat"] = torch.zeros_like(b["rgb"], dtype=torch.bool)
+        return b
+
+    tr.bank.sample = photos
+    info = estimate_blur_by_render(tr, n_rays=1024)
+    assert info["rays"] == 1024 and len(info["residuals"]) == len(info["sigmas"])
+    assert info["sigma"] == pytest.approx(true_sigma, abs=0.12)
+    assert info["fit_i_r"] == pytest.approx(0.4, abs=0.05) and info["fit_i_b"] == pytest.approx(0.1, abs=0.03)
+
+
+def test_auto_blur_is_decided_once_saved_and_restored(tmp_path):
+    """camera_blur=auto (the default): decided at blur_at_frac of the run, in the checkpoint, and a
+    trainer that loads that checkpoint uses the same blur without estimating again; a number
+    keeps today's fixed blur."""
+    from conftest import SMALL_RUN
+
+    from fastneus.config import load_config
+    from fastneus.synth.render import synthesize
+    from fastneus.train.trainer import Trainer
+
+    scene = synthesize(tmp_path / "s", shape="sphere", views=2, size=(24, 24), pattern="crosslaser",
+                       device="cpu", noise=0.0, proj_size=(64, 48), progress=False, contact_sheet=False)
+    cfg = load_config("cpu-quick", SMALL_RUN + ["threads=1"])
+    assert cfg.rays.camera_blur == "auto"
+    tr = Trainer(scene, cfg, tmp_path / "a", "cpu")
+    assert tr.blur_pending and tr.camera_blur == 0.0 and "auto" in tr.blur_note()
+    calls = []
+    orig = tr.decide_camera_blur
+    tr.decide_camera_blur = lambda: calls.append(tr.step) or orig()
+    for _ in range(4):
+        tr.train_step()
+    assert calls == [2]  # steps=4, blur_at_frac 0.3: at the third step, once
+    d = tr.blur_decision
+    assert d["mode"] == "auto" and d["sigma"] is not None and d["sigma"] >= 0 and d["seconds"] >= 0
+    assert tr.camera_blur == d["sigma"] and "->" in tr.blur_note()
+    st = tr.state()
+    assert st["camera_blur"]["sigma"] == d["sigma"]
+    tr.apply_camera_blur(0.7)  # pretend the estimate said 0.7: a restored run blurs by it
+    st["camera_blur"]["sigma"] = 0.7
+    again = Trainer(scene, cfg, tmp_path / "b", "cpu")
+    again.load_state(st)
+    assert not again.blur_pending and again.camera_blur == 0.7
+    assert torch.equal(again.proj.store.buffer, tr.proj.store.buffer)
+    fixed = Trainer(scene, load_config("cpu-quick", SMALL_RUN + ["threads=1", "camera_blur=0.5"]), tmp_path / "c", "cpu")
+    assert not fixed.blur_pending and fixed.camera_blur == 0.5 and fixed.blur_decision == {"mode": "set", "sigma": 0.5}
+
+
+def test_camera_blur_config_values():
+    from fastneus.config import camera_blur_sigma, load_config
+    from fastneus.errors import FastneusError
+
+    assert load_config("cpu-quick").rays.camera_blur == "auto"
+    assert camera_blur_sigma(load_config("cpu-quick", ["camera_blur=0.76"]).rays.camera_blur) == 0.76
+    assert camera_blur_sigma("auto") is None and camera_blur_sigma(0) == 0.0
+    for bad in (["camera_blur=-0.1"], ["camera_blur=11"], ["camera_blur=sharp"], ["camera_blur=nan"],
+                ["camera_blur=auto", "blur_via=rays"], ["blur_at_frac=1.5"]):
+        with pytest.raises(FastneusError):
+            load_config("cpu-quick", bad)
+    assert load_config("cpu-quick", ["camera_blur=0.7", "blur_via=rays"]).rays.blur_via == "rays"

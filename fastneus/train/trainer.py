@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from fastneus.config import Config, config_from_dict, save_config
+from fastneus.config import Config, camera_blur_sigma, config_from_dict, save_config
 from fastneus.errors import FastneusError
 from fastneus.field.model import SDFField
 from fastneus.field.renderer import march_samples, pattern_pass_split, shade_samples
@@ -141,8 +141,14 @@ class Trainer:
             self.masks_note += f"; warning: empty (all-zero) mask {', '.join(self.bank.empty_masks)}"
         self.bg_used, self.bg_note = resolve_bg_prior(cfg, self.masks_used, self.bank.bg_fraction)
         self.bg_lit = self.bg_used and resolve_bg_lit(cfg, self.bank.bg_fraction)
-        # the camera's blur on the projected light (fastneus.train.camblur; blur_via=rays: as rays below)
-        self.pattern_blur = cfg.rays.camera_blur if cfg.rays.blur_via == "pattern" else 0.0
+        # the camera's blur on the projected light (fastneus.train.camblur; blur_via=rays: as rays below);
+        # auto: none until it is estimated at blur_at_frac of the run (decide_camera_blur)
+        blur = camera_blur_sigma(cfg.rays.camera_blur)
+        self.blur_pending = blur is None
+        self.blur_decision: dict = {"mode": "auto", "at_frac": cfg.rays.blur_at_frac, "sigma": None} \
+            if self.blur_pending else {"mode": "set", "sigma": blur}
+        self.camera_blur = 0.0 if blur is None else blur  # the blur in use, camera px
+        self.pattern_blur = self.camera_blur if cfg.rays.blur_via == "pattern" else 0.0
         self.proj = build_projection(scene, self.frames, self.device, refraction=cfg.rig.refraction,
                                      camera_blur=self.pattern_blur)
         self.rig = Rig(scene, self.frames, self.bank, self.proj, cfg.rig, self.device,  # real-rig corrections
@@ -184,7 +190,7 @@ class Trainer:
         self._skipped_dev = torch.zeros((), dtype=torch.int64, device=self.device) if self.device.type == "cuda" else None
         self.empty_steps = 0        # consecutive steps whose rays found no occupied cell
         # rays per training pixel: the camera's defocus as several rays averaged (rays.camera_blur)
-        self.blur_sub = cfg.rays.blur_rays if cfg.rays.camera_blur > 0 and cfg.rays.blur_via == "rays" else 1
+        self.blur_sub = cfg.rays.blur_rays if self.camera_blur > 0 and cfg.rays.blur_via == "rays" else 1
         if self.blur_sub > 1 and not isinstance(self.bank, RayBank):
             raise FastneusError("camera_blur needs one ray per shot (set group_shots=false for a multi-shot scene)",
                                 field="rays.camera_blur")
@@ -278,6 +284,52 @@ class Trainer:
                              threshold=c.occupancy.occ_threshold, margin=math.sqrt(3) / self.grid.resolution,
                              backend=c.run.backend)
 
+    def decide_camera_blur(self) -> dict:
+        """``camera_blur=auto``: estimate the blur from the data (:func:`fastneus.train.camblur.
+        estimate_blur_by_render`) and switch the patterns to it; i_r, i_b keep learning from where
+        they are (the estimate's own closed-form fit, kept as ``fit_i_r`` / ``fit_i_b``, comes out
+        low even on ideal captures: a field that is not yet aligned attenuates it).
+
+        The blurred patterns are copied into the trainer's pattern buffer in place (same size):
+        the rig, the renderer and any captured CUDA graph hold that buffer, so they all see the
+        switch without a rebuild. Printed, kept in :attr:`blur_decision` (run.json, checkpoint).
+
+        Returns:
+            The decision (``sigma``, ``i_r``, ``i_b``, ``residuals`` per candidate, ``seconds``).
+        """
+        from fastneus.train.camblur import estimate_blur_by_render
+
+        self.blur_pending = False
+        info = estimate_blur_by_render(self)
+        self.blur_decision.update(info, step=self.step)
+        self.apply_camera_blur(float(info["sigma"]))
+        if self.console is not None:
+            self.console.print(self.blur_note(), soft_wrap=True, highlight=False, markup=False)
+        return self.blur_decision
+
+    def apply_camera_blur(self, sigma: float) -> None:
+        """Blur the trainer's patterns by ``sigma`` camera px (from the unblurred images), in place."""
+        if self.cfg.rays.blur_via != "pattern" or sigma == self.pattern_blur:
+            self.camera_blur = sigma
+            return
+        new = build_projection(self.scene, self.frames, self.device, refraction=self.cfg.rig.refraction,
+                               camera_blur=sigma).store
+        if new.buffer.shape != self.proj.store.buffer.shape:  # a blur keeps every pattern's size
+            raise FastneusError("blurred patterns changed size", field="rays.camera_blur")
+        self.proj.store.buffer.copy_(new.buffer)  # in place: the rig and captured CUDA graphs read this buffer
+        self.camera_blur = self.pattern_blur = sigma
+
+    def blur_note(self) -> str:
+        """One line on the camera blur in use (printed; run.json keeps :attr:`blur_decision`)."""
+        d = self.blur_decision
+        if d["mode"] == "set":
+            return f"camera blur: {d['sigma']:g} px (set)"
+        if d.get("sigma") is None:
+            return f"camera blur: auto, estimated at {100 * d['at_frac']:.0f} % of the run"
+        res = ", ".join(f"{s:g}:{r:.4f}" for s, r in zip(d["sigmas"], d["residuals"]))
+        return (f"camera blur: auto -> {d['sigma']:g} px at step {d.get('step')} ({d['seconds']:.1f} s; "
+                f"residual per sigma {res or 'none: no lit rays'})")
+
     # ------------------------------------------------------------------ one step
     def train_step(self) -> dict | None:
         """One optimisation step. Returns scalars (as tensors) for logging, or None if skipped.
@@ -289,6 +341,8 @@ class Trainer:
         """
         c = self.cfg
         p = self.progress()
+        if self.blur_pending and p >= c.rays.blur_at_frac:
+            self.decide_camera_blur()
         self.field.set_progress(p)
         self.update_grid(p)
         self._set_lr(p)
@@ -296,7 +350,7 @@ class Trainer:
         n = graphs.ray_count(self.n_rays) if graphs is not None else self.n_rays
         sub = self.blur_sub
         batch = self.rig.rays(self.bank.sample(max(1, n // sub), self.gen, bright_fraction=c.rays.bright_fraction,
-                                               blur=c.rays.camera_blur if sub > 1 else 0.0, sub=sub))
+                                               blur=self.camera_blur if sub > 1 else 0.0, sub=sub))
         # a few uniform points for the eikonal term so the far field stays an SDF; they go through
         # the field in the same call as the samples (one hash + MLP pass instead of two)
         xr = torch.rand(max(256, n // 4), 3, device=self.device, generator=self.gen) * 2 - 1
@@ -541,7 +595,7 @@ class Trainer:
                 "log_ir": self.log_ir.detach().cpu(), "log_ib": self.log_ib.detach().cpu(),
                 **({"log_gain": self.log_gain.detach().cpu()} if self.log_gain is not None else {}),
                 "optimizer": self.opt.state_dict(), "frames": self.frames, "rig": rig_state(self.rig),
-                "gen": self.gen.get_state().cpu()}
+                "gen": self.gen.get_state().cpu(), "camera_blur": dict(self.blur_decision)}
 
     def save(self) -> Path:
         """Write the checkpoint atomically (temp file + rename): a crash keeps the previous one."""
@@ -560,6 +614,10 @@ class Trainer:
             if self.log_gain is not None and "log_gain" in st:
                 self.log_gain.copy_(st["log_gain"].to(self.device))
         rig_load(self.rig, st.get("rig"))
+        d = st.get("camera_blur")
+        if isinstance(d, dict) and d.get("mode") == "auto" and self.blur_pending and d.get("sigma") is not None:
+            self.blur_decision, self.blur_pending = dict(d), False  # decided before the checkpoint
+            self.apply_camera_blur(float(d["sigma"]))
         self.step, self.elapsed = int(st["step"]), float(st.get("elapsed", 0.0))
         self.n_rays, self.skipped = int(st.get("n_rays", self.n_rays)), int(st.get("skipped", 0))
         self.field.set_progress(self.progress())
