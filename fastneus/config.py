@@ -98,11 +98,14 @@ class RaysSection:
                       model=True)
     background: float = knob(0.0, "background colour behind the object (synthetic data: black)", lo=0.0, hi=1.0)
     camera_blur: str = knob("auto", "camera blur (lens defocus + the pixel's area), Gaussian sigma in pixels, "
-                            "applied as blur_via says: auto (estimated from the data at blur_at_frac of the run, "
+                            "applied as blur_via says: auto (estimated from the data at blur_at_frac and blur_refine_frac of the run, "
                             "fastneus.train.camblur), or a number in [0, 10] (0 = one ray per pixel through its "
                             "centre, the patterns as they are)")
     blur_at_frac: float = knob(0.3, "camera_blur=auto: fraction of the run at which the blur is estimated "
                                "(the geometry and colours must be roughly fit by then)", **FRAC)
+    blur_refine_frac: float = knob(0.5, "camera_blur=auto: fraction of the run at which it is estimated again, "
+                                   "on the field trained with the first estimate (a field trained on sharp "
+                                   "patterns favours a sharper blur); 0 or <= blur_at_frac = once", **FRAC)
     blur_via: str = knob("pattern", "how camera_blur enters the model: pattern = the projected light only, each "
                          "pattern image blurred once by it in projector pixels (no cost per step); rays = each "
                          "training pixel is blur_rays rays spread by it, their colours averaged",

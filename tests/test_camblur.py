@@ -176,18 +176,19 @@ def test_auto_blur_is_decided_once_saved_and_restored(tmp_path):
 
     scene = synthesize(tmp_path / "s", shape="sphere", views=2, size=(24, 24), pattern="crosslaser",
                        device="cpu", noise=0.0, proj_size=(64, 48), progress=False, contact_sheet=False)
-    cfg = load_config("cpu-quick", SMALL_RUN + ["threads=1"])
+    cfg = load_config("cpu-quick", SMALL_RUN + ["threads=1", "steps=10"])
     assert cfg.rays.camera_blur == "auto"
     tr = Trainer(scene, cfg, tmp_path / "a", "cpu")
     assert tr.blur_pending and tr.camera_blur == 0.0 and "auto" in tr.blur_note()
     calls = []
     orig = tr.decide_camera_blur
     tr.decide_camera_blur = lambda: calls.append(tr.step) or orig()
-    for _ in range(4):
+    for _ in range(10):
         tr.train_step()
-    assert calls == [2]  # steps=4, blur_at_frac 0.3: at the third step, once
+    assert calls == [3, 5]  # steps=10: at blur_at_frac 0.3, again at blur_refine_frac 0.5
     d = tr.blur_decision
     assert d["mode"] == "auto" and d["sigma"] is not None and d["sigma"] >= 0 and d["seconds"] >= 0
+    assert len(d["rounds"]) == 2 and d["sigma"] == d["rounds"][-1]["sigma"] and not tr.blur_pending
     assert tr.camera_blur == d["sigma"] and "->" in tr.blur_note()
     st = tr.state()
     assert st["camera_blur"]["sigma"] == d["sigma"]
@@ -196,6 +197,9 @@ def test_auto_blur_is_decided_once_saved_and_restored(tmp_path):
     again = Trainer(scene, cfg, tmp_path / "b", "cpu")
     again.load_state(st)
     assert not again.blur_pending and again.camera_blur == 0.7
+    half = Trainer(scene, cfg, tmp_path / "h", "cpu")  # a checkpoint between the two estimates
+    half.load_state(dict(st, camera_blur=dict(st["camera_blur"], rounds=st["camera_blur"]["rounds"][:1])))
+    assert half.blur_due == [0.5] and half.camera_blur == 0.7
     assert torch.equal(again.proj.store.buffer, tr.proj.store.buffer)
     fixed = Trainer(scene, load_config("cpu-quick", SMALL_RUN + ["threads=1", "camera_blur=0.5"]), tmp_path / "c", "cpu")
     assert not fixed.blur_pending and fixed.camera_blur == 0.5 and fixed.blur_decision == {"mode": "set", "sigma": 0.5}
