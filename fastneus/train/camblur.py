@@ -230,6 +230,27 @@ def pick_sigma(sigmas, residuals) -> float:
     return float(np.clip(-c[1] / (2 * c[0]), x[0], x[2]))
 
 
+class _FieldOnce:
+    """A field that evaluates its first ``sdf_and_grad`` / ``color`` call and returns the same
+    results after (the estimate renders one set of samples many times: only the patterns change)."""
+
+    def __init__(self, field):
+        self._field, self._geo, self._col = field, None, None
+
+    def sdf_and_grad(self, x, with_curvature: bool = False):
+        if self._geo is None:
+            self._geo = self._field.sdf_and_grad(x, with_curvature=with_curvature)
+        return self._geo
+
+    def color(self, *args):
+        if self._col is None:
+            self._col = self._field.color(*args)
+        return self._col
+
+    def __getattr__(self, name):
+        return getattr(self._field, name)
+
+
 def estimate_blur_by_render(tr, sigmas=AUTO_SIGMAS, n_rays: int = AUTO_RAYS) -> dict:
     """``camera_blur=auto``: the blur whose blurred patterns best explain the photos, by rendering.
 
@@ -274,11 +295,12 @@ def estimate_blur_by_render(tr, sigmas=AUTO_SIGMAS, n_rays: int = AUTO_RAYS) -> 
             info["seconds"] = round(time.perf_counter() - t_start, 3)
             return info
         cos = tr.cos_anneal()
+        field = _FieldOnce(tr.field)  # one field evaluation for every render below
 
         def render(proj, i_r: float, i_b: float) -> torch.Tensor:
             ir = torch.full((1,), float(i_r), device=dev)
             ib = torch.full((1,), float(i_b), device=dev)
-            out = shade_samples(tr.field, smp, proj, batch["origins"], batch["dirs"], batch["fidx"], cfg,
+            out = shade_samples(field, smp, proj, batch["origins"], batch["dirs"], batch["fidx"], cfg,
                                 i_r=ir, i_b=ib, cos_anneal=cos)
             pred = tr.rig.composite(out["color"], out, cfg.rays.background)
             if tr.log_gain is not None:
