@@ -100,7 +100,7 @@ def test_camera_blur_on_the_patterns_changes_only_the_patterns(tmp_path):
 
 # --------------------------------------------------------------------------- camera_blur=auto
 def test_fit_illumination_recovers_the_light_despite_outliers():
-    from fastneus.train.camblur import fit_illumination
+    from fastneus.train.blurfit import fit_illumination
 
     rng = np.random.default_rng(0)
     n = 4000
@@ -115,7 +115,7 @@ def test_fit_illumination_recovers_the_light_despite_outliers():
 
 
 def test_pick_sigma_refines_the_grid_minimum():
-    from fastneus.train.camblur import AUTO_SIGMAS, pick_sigma
+    from fastneus.train.blurfit import AUTO_SIGMAS, pick_sigma
 
     s = np.asarray(AUTO_SIGMAS)
     assert pick_sigma(s, (s - 0.62) ** 2 + 1.0) == pytest.approx(0.62, abs=1e-6)
@@ -133,7 +133,7 @@ def test_auto_blur_recovers_a_known_blur_with_a_fixed_field(tmp_path, true_sigma
     from fastneus.config import load_config
     from fastneus.field.renderer import march_samples, shade_samples
     from fastneus.synth.render import synthesize
-    from fastneus.train.camblur import estimate_blur_by_render
+    from fastneus.train.blurfit import estimate_blur_by_render
     from fastneus.train.rays import build_projection
     from fastneus.train.trainer import Trainer
 

@@ -292,7 +292,7 @@ class Trainer:
                              backend=c.run.backend)
 
     def decide_camera_blur(self) -> dict:
-        """``camera_blur=auto``: estimate the blur from the data (:func:`fastneus.train.camblur.
+        """``camera_blur=auto``: estimate the blur from the data (:func:`fastneus.train.blurfit.
         estimate_blur_by_render`) and switch the patterns to it; i_r, i_b keep learning from where
         they are (the estimate's own closed-form fit, kept as ``fit_i_r`` / ``fit_i_b``, comes out
         low even on ideal captures: a field that is not yet aligned attenuates it).
@@ -310,7 +310,7 @@ class Trainer:
         Returns:
             The decision (``sigma``, ``i_r``, ``i_b``, ``residuals`` per candidate, ``seconds``).
         """
-        from fastneus.train.camblur import estimate_blur_by_render
+        from fastneus.train.blurfit import estimate_blur_by_render
 
         p = self.progress()
         while self.blur_due and p >= self.blur_due[0]:  # both fractions passed (e.g. a resume): once
