@@ -97,10 +97,20 @@ class RaysSection:
     bound: str = knob("sphere", "region of interest in normalised space: sphere | box", choices=("sphere", "box"),
                       model=True)
     background: float = knob(0.0, "background colour behind the object (synthetic data: black)", lo=0.0, hi=1.0)
-    camera_blur: float = knob(0.0, "camera defocus, Gaussian sigma in pixels: each training pixel is blur_rays "
-                              "rays spread by it, their colours averaged before the loss (0 = one ray per "
-                              "pixel through its centre)", lo=0.0, hi=10.0)
-    blur_rays: int = knob(4, "rays per training pixel when camera_blur > 0", lo=2, hi=16)
+    camera_blur: str = knob("auto", "camera blur (lens defocus + the pixel's area), Gaussian sigma in pixels, "
+                            "applied as blur_via says: auto (estimated from the data at blur_at_frac and blur_refine_frac of the run, "
+                            "fastneus.train.camblur), or a number in [0, 10] (0 = one ray per pixel through its "
+                            "centre, the patterns as they are)")
+    blur_at_frac: float = knob(0.3, "camera_blur=auto: fraction of the run at which the blur is estimated "
+                               "(the geometry and colours must be roughly fit by then)", **FRAC)
+    blur_refine_frac: float = knob(0.5, "camera_blur=auto: fraction of the run at which it is estimated again, "
+                                   "on the field trained with the first estimate (a field trained on sharp "
+                                   "patterns favours a sharper blur); 0 or <= blur_at_frac = once", **FRAC)
+    blur_via: str = knob("pattern", "how camera_blur enters the model: pattern = the projected light only, each "
+                         "pattern image blurred once by it in projector pixels (no cost per step); rays = each "
+                         "training pixel is blur_rays rays spread by it, their colours averaged",
+                         choices=("pattern", "rays"))
+    blur_rays: int = knob(4, "rays per training pixel when camera_blur > 0 and blur_via=rays", lo=2, hi=16)
     bright_fraction: float = knob(0.5, "share of rays drawn in proportion to pixel brightness (sparse laser lines)",
                                   **FRAC)
     group_shots: bool = knob(True, "multi-shot: one ray per viewpoint pixel carries its shots (false = separate)")
@@ -533,11 +543,37 @@ def validate(cfg: Config, source: str = "config") -> None:
         raise FastneusError("must not exceed rays.max_rays", file=source, field="rays.min_rays")
     if cfg.hashgrid.base_res > cfg.hashgrid.finest_res:
         raise FastneusError("must not exceed hashgrid.finest_res", file=source, field="hashgrid.base_res")
+    cb = cfg.rays.camera_blur
+    if camera_blur_sigma(cb) is None and cb != "auto":
+        raise FastneusError(f"must be auto or a number in [0, 10], got {cb!r}", file=source, field="rays.camera_blur")
+    if cb == "auto" and cfg.rays.blur_via == "rays":
+        raise FastneusError("camera_blur=auto puts the blur on the patterns: set blur_via=pattern, or a number",
+                            file=source, field="rays.camera_blur")
     r = cfg.illum.response  # the grammar of fastneus.data.response.parse_response (a lower layer may not import it)
     m = re.fullmatch(r"gamma=([0-9]*\.?[0-9]+(?:[eE][-+]?[0-9]+)?)", r) if isinstance(r, str) else None
     if not (r in ("auto", "linear", "srgb") or (m and 0.2 <= float(m.group(1)) <= 5.0)):
         raise FastneusError(f"must be auto, linear, srgb or gamma=G with G in [0.2, 5], got {r!r}", file=source,
                             field="illum.response")
+
+
+def camera_blur_sigma(value: Any) -> float | None:
+    """``rays.camera_blur`` as a number of pixels, or None for ``auto`` (or a value that is neither).
+
+    Args:
+        value: the knob's value (``"auto"``, ``"0.76"``, or a number).
+    Returns:
+        The blur sigma in camera pixels, finite and in [0, 10], or None.
+    """
+    if isinstance(value, bool):
+        return None
+    if isinstance(value, (int, float)):
+        v = float(value)
+    else:
+        try:
+            v = float(str(value).strip())
+        except ValueError:
+            return None
+    return v if math.isfinite(v) and 0.0 <= v <= 10.0 else None
 
 
 def load_config(config: str | None = None, overrides: list[str] | None = None,

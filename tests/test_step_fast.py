@@ -108,7 +108,7 @@ def test_camera_blur_rays_average_to_the_blurred_pixel(small_scene, tmp_path):
     from fastneus.train.trainer import Trainer
 
     sc = Scene.load(small_scene)
-    cfg = load_config("cpu-quick", SMALL_RUN + ["threads=1", "camera_blur=0.7", "blur_rays=4"])
+    cfg = load_config("cpu-quick", SMALL_RUN + ["threads=1", "camera_blur=0.7", "blur_via=rays", "blur_rays=4"])
     tr = Trainer(sc, cfg, tmp_path / "b", "cpu")
     assert tr.blur_sub == 4
     g = torch.Generator().manual_seed(3)
@@ -125,6 +125,21 @@ def test_camera_blur_rays_average_to_the_blurred_pixel(small_scene, tmp_path):
         rec = tr.train_step()
     assert rec is not None and torch.isfinite(rec["loss"])
     assert Trainer(sc, load_config("cpu-quick", SMALL_RUN), tmp_path / "c", "cpu").blur_sub == 1
+
+
+def test_camera_blur_on_the_patterns_costs_no_rays_and_trains(small_scene, tmp_path):
+    """blur_via=pattern (the default way): one ray per pixel, the trainer's patterns blurred, and a
+    step trains; camera_blur=0 leaves the patterns untouched."""
+    from fastneus.train.trainer import Trainer
+
+    sc = Scene.load(small_scene)
+    tr = Trainer(sc, load_config("cpu-quick", SMALL_RUN + ["threads=1", "camera_blur=0.7"]), tmp_path / "p", "cpu")
+    ref = Trainer(sc, load_config("cpu-quick", SMALL_RUN + ["threads=1"]), tmp_path / "q", "cpu")
+    assert tr.blur_sub == 1 and tr.pattern_blur == 0.7 and ref.pattern_blur == 0.0
+    assert not torch.equal(tr.proj.store.buffer, ref.proj.store.buffer)
+    for _ in range(3):
+        rec = tr.train_step()
+    assert rec is not None and torch.isfinite(rec["loss"])
 
 
 def test_background_prior_in_a_dark_room_only_where_the_light_reaches(small_scene, tmp_path):

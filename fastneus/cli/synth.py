@@ -47,6 +47,7 @@ def register(subparsers) -> None:
                        ("speckle", "speckle contrast of the projected light (std/mean)"),
                        ("specular", "Blinn-Phong highlight strength"), ("shininess", "Blinn-Phong exponent"),
                        ("defocus", "camera defocus, Gaussian sigma in pixels"),
+                       ("supersample", "with defocus: rays per pixel side, the pixel's area averaged (default 4)"),
                        ("vignetting", "relative fall-off at the image corner"),
                        ("read-noise", "read-noise sigma (linear units)"),
                        ("shot-noise", "shot-noise variance per unit signal")):
@@ -78,7 +79,7 @@ def capture_options(args) -> dict:
     """The capture options given on the command line (``fastneus.synth.capture.Capture`` fields)."""
     opts = {"response": args.response, "exposure": args.exposure, "speckle": args.speckle,
             "specular": args.specular, "shininess": args.shininess, "blur": args.defocus,
-            "vignetting": args.vignetting, "read_noise": args.read_noise, "shot_noise": args.shot_noise}
+            "supersample": args.supersample, "vignetting": args.vignetting, "read_noise": args.read_noise, "shot_noise": args.shot_noise}
     return {k: v for k, v in opts.items() if v is not None}
 
 

@@ -141,7 +141,8 @@ def render_frames(trainer, frames: list[int], chunk: int = 8192) -> dict[int, di
     rig = getattr(trainer, "rig", None)
     posed = rig.eval_scene() if rig is not None else scene  # learned pose corrections, if any
     bank = RayBank(posed, frames, trainer.device, refraction=refr)
-    proj = build_projection(posed, frames, trainer.device, refraction=refr)
+    proj = build_projection(posed, frames, trainer.device, refraction=refr,
+                           camera_blur=getattr(trainer, "pattern_blur", 0.0))
     if getattr(trainer, "rig", None) is not None:  # learned light model (blur...); poses are per training frame
         proj = trainer.rig.light_model(proj)
     i_r, i_b = (x.detach() for x in trainer.illumination())

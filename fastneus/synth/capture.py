@@ -8,7 +8,10 @@ meets the camera:
    intensity ~ Gamma(M, 1/M) per pixel and frame, contrast std/mean = ``speckle``;
 2. specular highlights: Blinn-Phong ``specular * max(0, n.h)^shininess`` for the ambient light
    (white, times the ambient level) and for every projector's light (times its pattern sample);
-3. defocus: a Gaussian blur of ``blur`` pixels over the whole image;
+3. defocus: a Gaussian blur of ``blur`` pixels over the whole image, formed as a lens and a sensor
+   do: the scene is rendered at ``supersample`` x ``supersample`` rays per pixel, blurred on that
+   grid, and each pixel's area averaged (the synthetic lasers' lines are thinner than a pixel:
+   point-sampled, they would be aliased one-pixel spikes that no camera records);
 4. vignetting: ``1 - vignetting * (r / r_corner)^2``;
 5. exposure: a per-frame gain, log-uniform within ``1 / (1 + exposure) .. 1 + exposure``;
    frame 0 keeps gain 1 (the reference the learned gains are anchored to);
@@ -42,6 +45,8 @@ class Capture:
         specular: Blinn-Phong strength of the highlights; 0 = Lambertian.
         shininess: Blinn-Phong exponent.
         blur: defocus, Gaussian sigma in camera pixels; 0 = sharp.
+        supersample: rays per pixel side when ``blur`` > 0 (the pixel's area integrated, then
+            averaged); 1 = the pixel centre only. :func:`make_capture` sets 4 unless given.
         vignetting: relative fall-off at the image corner; 0 = none.
         read_noise: read-noise sigma (linear units).
         shot_noise: shot-noise variance per unit of linear signal.
@@ -53,6 +58,7 @@ class Capture:
     specular: float = 0.0
     shininess: float = 40.0
     blur: float = 0.0
+    supersample: int = 1
     vignetting: float = 0.0
     read_noise: float = 0.0
     shot_noise: float = 0.0
@@ -62,11 +68,12 @@ class Capture:
         return {**asdict(self), "gains": [round(float(g), 6) for g in gains]}
 
 
+SUPERSAMPLE = 4  # rays per pixel side of a blurred capture (the laser lines are ~0.6 px wide at 128 px)
 # the --realistic mix: a consumer camera in auto-exposure, a laser / DLP projector, a glossy object
 REALISTIC = dict(response="srgb", exposure=0.25, speckle=0.3, specular=0.25, shininess=40.0, blur=0.7,
                  vignetting=0.25, read_noise=0.002, shot_noise=2e-4)
 _LIMITS = {"exposure": (0.0, 4.0), "speckle": (0.0, 1.0), "specular": (0.0, 10.0), "shininess": (1.0, 1e4),
-           "blur": (0.0, 5.0), "vignetting": (0.0, 0.95), "read_noise": (0.0, 0.5), "shot_noise": (0.0, 0.5)}
+           "blur": (0.0, 5.0), "supersample": (1, 8), "vignetting": (0.0, 0.95), "read_noise": (0.0, 0.5), "shot_noise": (0.0, 0.5)}
 
 
 def make_capture(capture: dict | Capture | None = None, realistic: bool = False) -> Capture | None:
@@ -88,6 +95,7 @@ def make_capture(capture: dict | Capture | None = None, realistic: bool = False)
             vals[k] = v
     if not vals:
         return None
+    vals.setdefault("supersample", SUPERSAMPLE)
     for k, v in vals.items():
         if k == "response":
             vals[k] = str(parse_response(v, field="capture.response"))
@@ -99,7 +107,9 @@ def make_capture(capture: dict | Capture | None = None, realistic: bool = False)
             ok = False
         if not ok:
             raise FastneusError(f"expected a number in [{lo:g}, {hi:g}], got {v!r}", field=f"capture.{k}")
-        vals[k] = float(v)
+        vals[k] = int(v) if k == "supersample" else float(v)
+        if k == "supersample" and vals[k] != float(v):
+            raise FastneusError(f"expected a whole number, got {v!r}", field=f"capture.{k}")
     return Capture(**vals)
 
 
@@ -113,9 +123,15 @@ def frame_gains(n: int, spread: float, seed: int) -> np.ndarray:
     return g
 
 
-def apply_speckle(light: torch.Tensor, contrast: float, key: tuple) -> torch.Tensor:
+def apply_speckle(light: torch.Tensor, contrast: float, key: tuple,
+                  pixels: tuple[torch.Tensor, int] | None = None) -> torch.Tensor:
     """Projected light [N, 3] times fully developed speckle averaged over M = 1/contrast^2 grains.
 
+    Args:
+        light: [N, 3] projected light; contrast: std / mean of the speckle; key: the seed.
+        pixels: (index [N] int64, count): the N rays are sub-pixel rays of ``count`` camera pixels,
+            ``index`` naming each ray's pixel; the rays of one pixel share its speckle value.
+            None: one value per row.
     Returns:
         [N, 3]: ``light * s`` with s ~ Gamma(M, 1/M) per pixel (mean 1, std ``contrast``), one s
         for the three channels.
@@ -123,8 +139,9 @@ def apply_speckle(light: torch.Tensor, contrast: float, key: tuple) -> torch.Ten
     if contrast <= 0 or light.shape[0] == 0:
         return light
     m = 1.0 / contrast ** 2
-    s = np.random.default_rng(key).gamma(m, 1.0 / m, light.shape[0]).astype(np.float32)
-    return light * torch.from_numpy(s).to(light.device)[:, None]
+    n = light.shape[0] if pixels is None else int(pixels[1])
+    s = torch.from_numpy(np.random.default_rng(key).gamma(m, 1.0 / m, n).astype(np.float32)).to(light.device)
+    return light * (s if pixels is None else s[pixels[0]])[:, None]
 
 
 def blinn_phong(n: torch.Tensor, view: torch.Tensor, to_light: torch.Tensor, shininess: float) -> torch.Tensor:
@@ -164,13 +181,25 @@ def vignette(h: int, w: int, strength: float, device) -> torch.Tensor:
     return (1.0 - strength * r2)[..., None]
 
 
-def finish(img: torch.Tensor, cap: Capture, gain: float, key: tuple) -> torch.Tensor:
+def sensor_pixels(img: torch.Tensor, sigma: float, sub: int) -> torch.Tensor:
+    """A lens and a sensor: [H*sub, W*sub, 3] radiance at sub-pixel centres -> [H, W, 3] pixels.
+
+    The lens's Gaussian (``sigma`` camera pixels) on the fine grid, then each pixel's area averaged
+    (``sub`` x ``sub`` box): the pixel value of a continuous image blurred by the lens.
+    """
+    x = _gaussian_blur(img, sigma * sub) if sigma > 0 else img
+    t = torch.nn.functional.avg_pool2d(x.permute(2, 0, 1)[None], sub)  # [1, 3, H, W]
+    return t[0].permute(1, 2, 0).contiguous()
+
+
+def finish(img: torch.Tensor, cap: Capture, gain: float, key: tuple, blurred: bool = False) -> torch.Tensor:
     """The camera: linear radiance [H, W, 3] -> encoded values in [0, 1] (before 8-bit rounding).
 
-    Blur, vignetting, exposure gain, read + shot noise, clipping at 1 (saturation), response.
+    Blur (unless ``blurred``: :func:`sensor_pixels` formed the pixels), vignetting, exposure gain,
+    read + shot noise, clipping at 1 (saturation), response.
     """
     x = img
-    if cap.blur > 0:
+    if cap.blur > 0 and not blurred:
         x = _gaussian_blur(x, cap.blur)
     if cap.vignetting > 0:
         x = x * vignette(x.shape[0], x.shape[1], cap.vignetting, x.device)

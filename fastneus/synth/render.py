@@ -31,7 +31,7 @@ from fastneus.light.patterns import pattern_kinds, sequence_kinds
 from fastneus.light.patterns import make_pattern, write_png
 from fastneus.geometry.projection import Z_MIN, pixel_rays, project_points, refract_rays, sample_pattern
 from fastneus.synth.albedo import Albedo
-from fastneus.synth.capture import apply_speckle, blinn_phong, finish, frame_gains, make_capture
+from fastneus.synth.capture import apply_speckle, blinn_phong, finish, frame_gains, make_capture, sensor_pixels
 from fastneus.synth.shapes import load_mesh, make_shape, normalise_mesh
 from fastneus.synth.water import WATER, WATER_PORT, Water, port_exit
 
@@ -351,7 +351,75 @@ def _synthesize(out, shape, mesh, views, size, pattern, illum, albedo, noise, se
     light = light / light.norm()
     jj, ii = torch.meshgrid(torch.arange(W, device=dev), torch.arange(H, device=dev), indexing="xy")
     uv = torch.stack([jj.reshape(-1), ii.reshape(-1)], dim=1).to(torch.float32) + 0.5  # pixel centres
+    sub = cap.supersample if cap is not None and cap.blur > 0 else 1  # sub-pixel rays per side
+    uv_sub = parent = None
+    if sub > 1:  # [H*sub * W*sub, 2] sub-pixel centres (row-major), and the camera pixel of each
+        js, is_ = torch.meshgrid(torch.arange(W * sub, device=dev), torch.arange(H * sub, device=dev), indexing="xy")
+        uv_sub = (torch.stack([js.reshape(-1), is_.reshape(-1)], dim=1).to(torch.float32) + 0.5) / sub
+        parent = (is_.reshape(-1) // sub) * W + js.reshape(-1) // sub
     eps = 2e-4 * obj_radius  # shadow-ray offset (float32 safe at metre scale)
+
+    def trace(c2w, uv_px):
+        """Cast camera rays through ``uv_px`` [N, 2] (continuous pixel coordinates) of the view
+        ``c2w`` and light their hits: what the photo of every shot is made of."""
+        o, d = pixel_rays(K, c2w, uv_px)  # world space (S = identity)
+        if wet:  # refract at the camera's port: rays start on its outer face, in the water
+            R = torch.tensor(c2w[:3, :3], dtype=torch.float32, device=dev)
+            b, w = refract_rays(d @ R, port_row_t)
+            o, d = o + b @ R.T, w @ R.T
+        t, face, n = raycast_mesh(V, F, o, d, 1e6)
+        hit = face >= 0
+        hidx = hit.nonzero().squeeze(1)
+        dh, th, nh = d[hidx], t[hidx], n[hidx]
+        P = o[hidx] + th[:, None] * dh
+        zc = torch.tensor(c2w[:3, 2], dtype=torch.float32, device=dev)
+        depth = torch.zeros(uv_px.shape[0], dtype=torch.float32, device=dev)
+        depth[hidx] = (P - torch.tensor(c2w[:3, 3], dtype=torch.float32, device=dev)) @ zc  # z-depth
+        D = amb * alb(P, face[hidx], V, F) * (0.3 + 0.7 * (nh @ light).clamp_min(0))[:, None]
+
+        # projector terms: Q per shot and projector, V per projector (shadow rays where lit)
+        Q = [[None] * len(pids) for _ in range(n_shots)]
+        vis, to_proj = [], []  # to_proj: [nv, 3] unit directions toward each projector (highlights)
+        for k, p in enumerate(pids):
+            p2w = c2w @ projectors[p].proj_to_cam
+            w2p = np.linalg.inv(p2w)
+            px, z = project_points(P, Kp, w2p)
+            if wet:  # the pixel whose light reaches P through the port (the air-side direction)
+                Xp = P @ torch.tensor(w2p[:3, :3].T, dtype=P.dtype, device=dev) + \
+                    torch.tensor(w2p[:3, 3], dtype=P.dtype, device=dev)
+                Vd = port_dir_torch(Xp, port_row_t)
+                px, z = project_points(Vd, Kp, np.eye(4))
+                att_k = torch.exp(-torch.tensor(WATER["beta_d"], device=dev) * Xp.norm(dim=-1, keepdim=True))
+            front = z > Z_MIN
+            need = torch.zeros(P.shape[0], dtype=torch.bool, device=dev)
+            pkind = get_projector_kind(projectors[p].kind)
+            for j, shot in enumerate(shots):
+                if not pkind.images:  # an emitter (laser planes, ...): its kind's synth hook
+                    q = pkind.call("synth", P, w2p, projectors[p]).to(P.dtype)
+                else:
+                    q = _sample_blurred(pat_t[shot[p]], px, front, taps)
+                if wet:
+                    q = q * att_k
+                Q[j][k] = q
+                need |= q.amax(dim=1) > 0
+            C = torch.tensor(p2w[:3, 3], dtype=torch.float32, device=dev)
+            if wet:  # shadow rays follow the water segment, toward where the light leaves the port
+                C = port_exit(Xp, Vd, port_row_t) @ torch.tensor(p2w[:3, :3].T, dtype=P.dtype, device=dev) + \
+                    torch.tensor(p2w[:3, 3], dtype=P.dtype, device=dev)
+            to_c = C - P
+            dist = to_c.norm(dim=1)
+            dirp = to_c / dist[:, None]
+            to_proj.append(dirp)
+            facing = (nh * dirp).sum(1) > 0  # the lit side must face the projector
+            sel = (need & facing).nonzero().squeeze(1)
+            Vk = torch.zeros(P.shape[0], dtype=torch.float32, device=dev)
+            if sel.numel():
+                so = P[sel] + eps * nh[sel] + eps * dirp[sel]
+                ts, _, _ = raycast_mesh(V, F, so, dirp[sel], (dist[sel] - 2 * eps).clamp_min(0))
+                Vk[sel] = (~torch.isfinite(ts)).to(torch.float32)
+            vis.append(Vk)
+
+        return dict(hit=hit, hidx=hidx, dh=dh, th=th, nh=nh, depth=depth, D=D, Q=Q, vis=vis, to_proj=to_proj)
 
     frames: list[Frame] = []
     sheet_rows = []
@@ -367,63 +435,12 @@ def _synthesize(out, shape, mesh, views, size, pattern, illum, albedo, noise, se
         task = prog.add_task(name, total=n_views)
     try:
         for v, c2w in enumerate(poses):
-            o, d = pixel_rays(K, c2w, uv)  # world space (S = identity)
-            if wet:  # refract at the camera's port: rays start on its outer face, in the water
-                R = torch.tensor(c2w[:3, :3], dtype=torch.float32, device=dev)
-                b, w = refract_rays(d @ R, port_row_t)
-                o, d = o + b @ R.T, w @ R.T
-            t, face, n = raycast_mesh(V, F, o, d, 1e6)
-            hit = face >= 0
-            hidx = hit.nonzero().squeeze(1)
-            dh, th, nh = d[hidx], t[hidx], n[hidx]
-            P = o[hidx] + th[:, None] * dh
-            zc = torch.tensor(c2w[:3, 2], dtype=torch.float32, device=dev)
-            depth = torch.zeros(H * W, dtype=torch.float32, device=dev)
-            depth[hidx] = (P - torch.tensor(c2w[:3, 3], dtype=torch.float32, device=dev)) @ zc  # z-depth
-            D = amb * alb(P, face[hidx], V, F) * (0.3 + 0.7 * (nh @ light).clamp_min(0))[:, None]
-
-            # projector terms: Q per shot and projector, V per projector (shadow rays where lit)
-            Q = [[None] * len(pids) for _ in range(n_shots)]
-            vis, to_proj = [], []  # to_proj: [nv, 3] unit directions toward each projector (highlights)
-            for k, p in enumerate(pids):
-                p2w = c2w @ projectors[p].proj_to_cam
-                w2p = np.linalg.inv(p2w)
-                px, z = project_points(P, Kp, w2p)
-                if wet:  # the pixel whose light reaches P through the port (the air-side direction)
-                    Xp = P @ torch.tensor(w2p[:3, :3].T, dtype=P.dtype, device=dev) + \
-                        torch.tensor(w2p[:3, 3], dtype=P.dtype, device=dev)
-                    Vd = port_dir_torch(Xp, port_row_t)
-                    px, z = project_points(Vd, Kp, np.eye(4))
-                    att_k = torch.exp(-torch.tensor(WATER["beta_d"], device=dev) * Xp.norm(dim=-1, keepdim=True))
-                front = z > Z_MIN
-                need = torch.zeros(P.shape[0], dtype=torch.bool, device=dev)
-                pkind = get_projector_kind(projectors[p].kind)
-                for j, shot in enumerate(shots):
-                    if not pkind.images:  # an emitter (laser planes, ...): its kind's synth hook
-                        q = pkind.call("synth", P, w2p, projectors[p]).to(P.dtype)
-                    else:
-                        q = _sample_blurred(pat_t[shot[p]], px, front, taps)
-                    if wet:
-                        q = q * att_k
-                    Q[j][k] = q
-                    need |= q.amax(dim=1) > 0
-                C = torch.tensor(p2w[:3, 3], dtype=torch.float32, device=dev)
-                if wet:  # shadow rays follow the water segment, toward where the light leaves the port
-                    C = port_exit(Xp, Vd, port_row_t) @ torch.tensor(p2w[:3, :3].T, dtype=P.dtype, device=dev) + \
-                        torch.tensor(p2w[:3, 3], dtype=P.dtype, device=dev)
-                to_c = C - P
-                dist = to_c.norm(dim=1)
-                dirp = to_c / dist[:, None]
-                to_proj.append(dirp)
-                facing = (nh * dirp).sum(1) > 0  # the lit side must face the projector
-                sel = (need & facing).nonzero().squeeze(1)
-                Vk = torch.zeros(P.shape[0], dtype=torch.float32, device=dev)
-                if sel.numel():
-                    so = P[sel] + eps * nh[sel] + eps * dirp[sel]
-                    ts, _, _ = raycast_mesh(V, F, so, dirp[sel], (dist[sel] - 2 * eps).clamp_min(0))
-                    Vk[sel] = (~torch.isfinite(ts)).to(torch.float32)
-                vis.append(Vk)
-
+            g = trace(c2w, uv)
+            hit, hidx, dh, th, nh, depth, D, Q, vis, to_proj = (g[k] for k in (
+                "hit", "hidx", "dh", "th", "nh", "depth", "D", "Q", "vis", "to_proj"))
+            # a camera integrates each pixel's area: the photos of a blurred capture are formed from
+            # sub x sub rays per pixel (the lens blur on that grid, then the box average)
+            gs = trace(c2w, uv_sub) if sub > 1 else g
             nv = hidx.numel()
             mask = hit.view(H, W)
             water = Water(th, hidx, H * W, dev) if wet else None
@@ -441,31 +458,45 @@ def _synthesize(out, shape, mesh, views, size, pattern, illum, albedo, noise, se
             np.save(out / "depth" / f"{vname}.npy", depth_np)
             stats["coverage"].append(nv / (H * W))
             if cap is not None and cap.specular > 0:  # highlights: the ambient light's, each projector's lobe
-                lobe_amb = amb * cap.specular * blinn_phong(nh, -dh, light, cap.shininess)[:, None]
-                lobes = [cap.specular * blinn_phong(nh, -dh, to_proj[k], cap.shininess)[:, None]
+                lobe_amb = amb * cap.specular * blinn_phong(gs["nh"], -gs["dh"], light, cap.shininess)[:, None]
+                lobes = [cap.specular * blinn_phong(gs["nh"], -gs["dh"], gs["to_proj"][k], cap.shininess)[:, None]
                          for k in range(len(pids))]
             for j, shot in enumerate(shots):
                 fi = len(frames)
                 c = D.clone()
-                lp = torch.zeros_like(D)  # the projected light alone (speckle multiplies it only)
                 lit = torch.zeros(nv, dtype=torch.bool, device=dev)
                 for k, p in enumerate(pids):
                     qv = Q[j][k] * vis[k][:, None]
                     if cap is None:
                         c = c + (i_r * D + i_b) * qv
-                    else:
-                        lp = lp + (i_r * D + i_b + (lobes[k] if cap.specular > 0 else 0.0)) * qv
                     lit |= qv.amax(dim=1) > 0
-                if cap is not None:
-                    c = c + apply_speckle(lp, cap.speckle, (seed, 7, fi)) + (lobe_amb if cap.specular > 0 else 0.0)
                 img = torch.zeros(H * W, 3, dtype=torch.uint8, device=dev)
                 if cap is not None:  # the camera sees the whole linear image (blur crosses the silhouette)
-                    lin = torch.zeros(H * W, 3, dtype=torch.float32, device=dev)
+                    hs, Ds, ns = gs["hidx"], gs["D"], H * W * sub * sub
+                    lp = torch.zeros_like(Ds)  # the projected light alone (speckle multiplies it only)
+                    for k, p in enumerate(pids):
+                        qv = gs["Q"][j][k] * gs["vis"][k][:, None]
+                        lp = lp + (i_r * Ds + i_b + (lobes[k] if cap.specular > 0 else 0.0)) * qv
+                    # speckle: one grain value per camera pixel (its sub-pixel rays share it)
+                    c = Ds + apply_speckle(lp, cap.speckle, (seed, 7, fi), None if sub == 1 else
+                                           (parent[hs], H * W)) + (lobe_amb if cap.specular > 0 else 0.0)
+                    lin = torch.zeros(ns, 3, dtype=torch.float32, device=dev)
                     if wet:
-                        lin[:] = water.background() + _noise((H * W, 3), noise, (seed, 3, fi), dev)
-                        c = water.seen(c)
-                    lin[hidx] = c + _noise((nv, 3), noise, (seed, 2, fi), dev)
-                    img[:] = _quantise(finish(lin.view(H, W, 3), cap, gains[fi], (seed, 9, fi)).reshape(-1, 3))
+                        ws = Water(gs["th"], hs, ns, dev) if sub > 1 else water
+                        lin[:] = ws.background()
+                        c = ws.seen(c)
+                    lin[hs] = c
+                    lin = lin.view(H * sub, W * sub, 3)
+                    if sub > 1:  # the image noise is the sensor's: added to camera pixels, after the area average
+                        lin = sensor_pixels(lin, cap.blur, sub)
+                        lin = lin + _noise((H, W, 3), noise, (seed, 2, fi), dev)
+                    else:
+                        lin = lin.view(H * W, 3)
+                        if wet:
+                            lin = lin + _noise((H * W, 3), noise, (seed, 3, fi), dev) * (~hit)[:, None]
+                        lin[hidx] = lin[hidx] + _noise((nv, 3), noise, (seed, 2, fi), dev)
+                        lin = lin.view(H, W, 3)
+                    img[:] = _quantise(finish(lin, cap, gains[fi], (seed, 9, fi), blurred=sub > 1).reshape(-1, 3))
                 else:
                     if wet:
                         img[:] = _quantise(water.background() + _noise((H * W, 3), noise, (seed, 3, fi), dev))

@@ -101,6 +101,7 @@ class ProgressWriter:
         self.last_step = int(getattr(trainer, "step", 0))
         self.written: list[Path] = []         # validation images, in order
         self._bank = None                     # (RayBank, projection) of the frame when poses are fixed
+        self._bank_blur = 0.0                 # the pattern blur that projection was built with
         self.tb = None
         if tensorboard == "on" and not tensorboard_available():
             raise FastneusError("the tensorboard package is not installed (pip install 'fastneus[tensorboard]')",
@@ -172,15 +173,17 @@ class ProgressWriter:
         (poses are rebuilt each time while pose refinement is on)."""
         tr = self.tr
         rig = getattr(tr, "rig", None)
-        if self._bank is not None:
+        blur = getattr(tr, "pattern_blur", 0.0)
+        if self._bank is not None and self._bank_blur == blur:  # camera_blur=auto may change it mid-run
             return self._bank
         posed_on = rig is not None and rig.pose_on
         scene = rig.eval_scene() if posed_on else tr.scene
         refr = tr.cfg.rig.refraction
         bank = RayBank(scene, [self.frame], tr.device, refraction=refr)
-        proj = build_projection(scene, [self.frame], tr.device, refraction=refr)
+        proj = build_projection(scene, [self.frame], tr.device, refraction=refr,
+                                camera_blur=blur)
         if not posed_on:
-            self._bank = (bank, proj)
+            self._bank, self._bank_blur = (bank, proj), blur
         return bank, proj
 
     @torch.no_grad()

@@ -81,10 +81,17 @@ class Projection:
         return self.lights["laser"][1] if "laser" in self.lights else None
 
 
-def build_projection(scene, frames: list[int], device, refraction: bool = True) -> Projection:
+def build_projection(scene, frames: list[int], device, refraction: bool = True,
+                     camera_blur: float = 0.0) -> Projection:
     """Collect every projector of ``frames`` (in scene order) into kernel-ready tensors.
 
-    ``refraction``: keep the projectors' flat ports (underwater housings); False ignores them."""
+    Args:
+        scene: the loaded scene; frames: frame indices; device: where the tensors live.
+        refraction: keep the projectors' flat ports (underwater housings); False ignores them.
+        camera_blur: the camera's blur (Gaussian sigma, camera pixels) applied to the projected
+            light: each pattern image is blurred by it in projector pixels
+            (:func:`fastneus.train.camblur.projector_scale`); 0 = the patterns as they are.
+    """
     proj_ids = list(scene.projectors.keys())
     S = np.asarray(scene.normalisation(), dtype=np.float64)
     pat_ids: list[str] = []
@@ -113,7 +120,15 @@ def build_projection(scene, frames: list[int], device, refraction: bool = True) 
             if fp.pattern not in pat_ids:
                 pat_ids.append(fp.pattern)
             pat[a, k] = pat_ids.index(fp.pattern)
-    store = PatternStore([scene.pattern_image(p) for p in pat_ids], device) if pat_ids else \
+    images = [scene.pattern_image(p) for p in pat_ids]
+    if camera_blur > 0 and pat_ids:  # the lens's blur, moved onto the patterns (fastneus.train.camblur)
+        from fastneus.train.camblur import blur_pattern, projector_scale
+
+        scale = {pid: projector_scale(scene, frames, pid) for pid in proj_ids if kind_of[pid].images}
+        for q, pid in enumerate(pat_ids):
+            users = [scale[proj_ids[k]] for k in range(P) if (pat[:, k] == q).any()]
+            images[q] = blur_pattern(images[q], camera_blur * float(np.mean(users)))
+    store = PatternStore(images, device) if pat_ids else \
         PatternStore([np.zeros((1, 1, 3), np.uint8)], device)
     t = lambda a, dt=torch.float32: torch.as_tensor(a, dtype=dt, device=device).contiguous()  # noqa: E731
     proj = Projection(t(K), t(W), t(pat, torch.int32), store, has_pattern=bool((pat >= 0).any()))

@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from fastneus.config import Config, config_from_dict, save_config
+from fastneus.config import Config, camera_blur_sigma, config_from_dict, save_config
 from fastneus.errors import FastneusError
 from fastneus.field.model import SDFField
 from fastneus.field.renderer import march_samples, pattern_pass_split, shade_samples
@@ -161,7 +161,18 @@ class Trainer:
         self.bg_used, self.bg_note = resolve_bg_prior(cfg, self.masks_used, self.bank.bg_fraction)
         self.bg_lit = self.bg_used and resolve_bg_lit(cfg, self.bank.bg_fraction)
         self.fg_used = self.bg_used and resolve_fg_prior(cfg, self.bg_used, self.bank.bg_fraction)
-        self.proj = build_projection(scene, self.frames, self.device, refraction=cfg.rig.refraction)
+        # the camera's blur on the projected light (fastneus.train.camblur; blur_via=rays: as rays below);
+        # auto: none until it is estimated at blur_at_frac (and again at blur_refine_frac) of the run
+        # (decide_camera_blur)
+        blur = camera_blur_sigma(cfg.rays.camera_blur)
+        fr = cfg.rays.blur_at_frac, cfg.rays.blur_refine_frac
+        self.blur_due: list[float] = ([fr[0]] + ([fr[1]] if fr[1] > fr[0] else [])) if blur is None else []
+        self.blur_decision: dict = {"mode": "auto", "at_frac": list(self.blur_due), "sigma": None, "rounds": []} \
+            if blur is None else {"mode": "set", "sigma": blur}
+        self.camera_blur = 0.0 if blur is None else blur  # the blur in use, camera px
+        self.pattern_blur = self.camera_blur if cfg.rays.blur_via == "pattern" else 0.0
+        self.proj = build_projection(scene, self.frames, self.device, refraction=cfg.rig.refraction,
+                                     camera_blur=self.pattern_blur)
         self.rig = Rig(scene, self.frames, self.bank, self.proj, cfg.rig, self.device,  # real-rig corrections
                        split_patterns=pattern_pass_split(cfg, self.device))
         self.field = SDFField(cfg.hashgrid, cfg.network, self.device, backend=cfg.run.backend)
@@ -201,7 +212,7 @@ class Trainer:
         self._skipped_dev = torch.zeros((), dtype=torch.int64, device=self.device) if self.device.type == "cuda" else None
         self.empty_steps = 0        # consecutive steps whose rays found no occupied cell
         # rays per training pixel: the camera's defocus as several rays averaged (rays.camera_blur)
-        self.blur_sub = cfg.rays.blur_rays if cfg.rays.camera_blur > 0 else 1
+        self.blur_sub = cfg.rays.blur_rays if self.camera_blur > 0 and cfg.rays.blur_via == "rays" else 1
         if self.blur_sub > 1 and not isinstance(self.bank, RayBank):
             raise FastneusError("camera_blur needs one ray per shot (set group_shots=false for a multi-shot scene)",
                                 field="rays.camera_blur")
@@ -230,6 +241,11 @@ class Trainer:
         self._skipped = int(n)
         if self._skipped_dev is not None:
             self._skipped_dev.zero_()
+
+    @property
+    def blur_pending(self) -> bool:
+        """camera_blur=auto has an estimate still to make in this run."""
+        return bool(self.blur_due)
 
     def illumination(self) -> tuple[torch.Tensor, torch.Tensor]:
         return self.log_ir.exp(), self.log_ib.exp()
@@ -295,6 +311,64 @@ class Trainer:
                              threshold=c.occupancy.occ_threshold, margin=math.sqrt(3) / self.grid.resolution,
                              backend=c.run.backend)
 
+    def decide_camera_blur(self) -> dict:
+        """``camera_blur=auto``: estimate the blur from the data (:func:`fastneus.train.blurfit.
+        estimate_blur_by_render`) and switch the patterns to it; i_r, i_b keep learning from where
+        they are (the estimate's own closed-form fit, kept as ``fit_i_r`` / ``fit_i_b``, comes out
+        low even on ideal captures: a field that is not yet aligned attenuates it).
+
+        Called at ``blur_at_frac`` and again at ``blur_refine_frac``: a field trained on sharp
+        patterns has adapted to them and favours a sharper blur (rock, realistic Normal, true
+        0.76 px: 0.57 on the field at 30 % trained sharp, 0.78 on one trained with 0.57), so the
+        second estimate, on the field trained with the first, is the one kept; a sharp capture
+        stays at 0 both times.
+
+        The blurred patterns are copied into the trainer's pattern buffer in place (same size):
+        the rig, the renderer and any captured CUDA graph hold that buffer, so they all see the
+        switch without a rebuild. Printed, kept in :attr:`blur_decision` (run.json, checkpoint).
+
+        Returns:
+            The decision (``sigma``, ``i_r``, ``i_b``, ``residuals`` per candidate, ``seconds``).
+        """
+        from fastneus.train.blurfit import estimate_blur_by_render
+
+        p = self.progress()
+        while self.blur_due and p >= self.blur_due[0]:  # both fractions passed (e.g. a resume): once
+            self.blur_due.pop(0)
+        info = dict(estimate_blur_by_render(self), step=self.step)
+        d = self.blur_decision
+        d["rounds"] = d.get("rounds", []) + [info]
+        d.update(sigma=info["sigma"], step=info["step"], sigmas=info["sigmas"], residuals=info["residuals"],
+                 seconds=round(sum(r["seconds"] for r in d["rounds"]), 3))
+        self.apply_camera_blur(float(info["sigma"]))
+        if self.console is not None:
+            self.console.print(self.blur_note(), soft_wrap=True, highlight=False, markup=False)
+        return self.blur_decision
+
+    def apply_camera_blur(self, sigma: float) -> None:
+        """Blur the trainer's patterns by ``sigma`` camera px (from the unblurred images), in place."""
+        if self.cfg.rays.blur_via != "pattern" or sigma == self.pattern_blur:
+            self.camera_blur = sigma
+            return
+        new = build_projection(self.scene, self.frames, self.device, refraction=self.cfg.rig.refraction,
+                               camera_blur=sigma).store
+        if new.buffer.shape != self.proj.store.buffer.shape:  # a blur keeps every pattern's size
+            raise FastneusError("blurred patterns changed size", field="rays.camera_blur")
+        self.proj.store.buffer.copy_(new.buffer)  # in place: the rig and captured CUDA graphs read this buffer
+        self.camera_blur = self.pattern_blur = sigma
+
+    def blur_note(self) -> str:
+        """One line on the camera blur in use (printed; run.json keeps :attr:`blur_decision`)."""
+        d = self.blur_decision
+        if d["mode"] == "set":
+            return f"camera blur: {d['sigma']:g} px (set)"
+        if d.get("sigma") is None:
+            return f"camera blur: auto, estimated at {' and '.join(f'{100 * f:.0f}' for f in d['at_frac'])} % of the run"
+        res = ", ".join(f"{s:g}:{r:.4f}" for s, r in zip(d["sigmas"], d["residuals"]))
+        before = " -> ".join(f"{r['sigma']:g}" for r in d["rounds"][:-1])
+        return (f"camera blur: auto -> {before + ' -> ' if before else ''}{d['sigma']:g} px at step {d.get('step')} "
+                f"({d['seconds']:.1f} s in all; residual per sigma {res or 'none: no lit rays'})")
+
     # ------------------------------------------------------------------ one step
     def train_step(self) -> dict | None:
         """One optimisation step. Returns scalars (as tensors) for logging, or None if skipped.
@@ -306,6 +380,8 @@ class Trainer:
         """
         c = self.cfg
         p = self.progress()
+        if self.blur_due and p >= self.blur_due[0]:
+            self.decide_camera_blur()
         self.field.set_progress(p)
         self.update_grid(p)
         self._set_lr(p)
@@ -313,7 +389,7 @@ class Trainer:
         n = graphs.ray_count(self.n_rays) if graphs is not None else self.n_rays
         sub = self.blur_sub
         batch = self.rig.rays(self.bank.sample(max(1, n // sub), self.gen, bright_fraction=c.rays.bright_fraction,
-                                               blur=c.rays.camera_blur, sub=sub))
+                                               blur=self.camera_blur if sub > 1 else 0.0, sub=sub))
         # a few uniform points for the eikonal term so the far field stays an SDF; they go through
         # the field in the same call as the samples (one hash + MLP pass instead of two)
         xr = torch.rand(max(256, n // 4), 3, device=self.device, generator=self.gen) * 2 - 1
@@ -563,7 +639,7 @@ class Trainer:
                 "log_ir": self.log_ir.detach().cpu(), "log_ib": self.log_ib.detach().cpu(),
                 **({"log_gain": self.log_gain.detach().cpu()} if self.log_gain is not None else {}),
                 "optimizer": self.opt.state_dict(), "frames": self.frames, "rig": rig_state(self.rig),
-                "gen": self.gen.get_state().cpu()}
+                "gen": self.gen.get_state().cpu(), "camera_blur": dict(self.blur_decision)}
 
     def save(self) -> Path:
         """Write the checkpoint atomically (temp file + rename): a crash keeps the previous one."""
@@ -582,6 +658,11 @@ class Trainer:
             if self.log_gain is not None and "log_gain" in st:
                 self.log_gain.copy_(st["log_gain"].to(self.device))
         rig_load(self.rig, st.get("rig"))
+        d = st.get("camera_blur")
+        if isinstance(d, dict) and d.get("mode") == "auto" and self.blur_due and d.get("sigma") is not None:
+            self.blur_decision = dict(d)  # estimated before the checkpoint: those rounds are not redone
+            self.blur_due = self.blur_due[len(d.get("rounds", [])) or 1:]
+            self.apply_camera_blur(float(d["sigma"]))
         self.step, self.elapsed = int(st["step"]), float(st.get("elapsed", 0.0))
         self.n_rays, self.skipped = int(st.get("n_rays", self.n_rays)), int(st.get("skipped", 0))
         self.field.set_progress(self.progress())
