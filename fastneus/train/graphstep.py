@@ -33,6 +33,7 @@ from fastneus.train import losses
 from fastneus.train.rays import RayBank
 
 MAX_GRAPHS = 8  # least recently used graphs are dropped past this (each keeps its activations)
+MIN_FREE = 0.35  # ... and while less than this share of the GPU's memory is free (_make_room)
 
 
 def ray_bucket(n: int) -> int:
@@ -101,7 +102,7 @@ class StepGraphs:
         self.cache: collections.OrderedDict = collections.OrderedDict()
         self.enabled = True
         self.console = console
-        self.captured = self.replayed = self.eager = 0
+        self.captured = self.replayed = self.eager = self.evicted = 0
         trainer.field.enable_device_schedule()
 
     def eligible(self, tr, p: float) -> bool:
@@ -123,7 +124,8 @@ class StepGraphs:
     def _key(self, tr, batch: dict, capacity: int, p: float) -> tuple:
         c = tr.cfg
         bg = tr.bg_used and not tr.masks_used and p >= c.loss.bg_start_frac
-        return (batch["origins"].shape[0], capacity, bg, tuple(sorted(batch)))
+        fg = getattr(tr, "fg_used", False) and p >= c.loss.fg_start_frac  # the foreground prior's term
+        return (batch["origins"].shape[0], capacity, bg, fg, tuple(sorted(batch)))
 
     def ray_count(self, n: int) -> int:
         """The ray count of this step: the last one while ``n`` stays within 12 % of it (so the
@@ -147,6 +149,7 @@ class StepGraphs:
         tr.opt.prepare_device_step()
         e = self.cache.get(key)
         if e is None:
+            self._make_room()
             e = _Entry(batch, xr, smp, capacity)
             self.cache[key] = e
             while len(self.cache) > MAX_GRAPHS:
@@ -180,5 +183,20 @@ class StepGraphs:
                                    "training goes on with eager steps (run.cuda_graph=off hides this)")
         return rec
 
+    def _make_room(self) -> None:
+        """Before a new graph: drop the least recently used ones while less than
+        ``MIN_FREE`` of the GPU's memory is free. Each graph keeps a private pool of its step's
+        activations (~9 GB at 2^18 samples), so eight of them filled an 80-GB H100 and the
+        next eager step ran out of memory; a dropped graph is captured again when its key
+        returns. A host query only, made when a key is new."""
+        while self.cache:
+            free, total = torch.cuda.mem_get_info(self.device)
+            if free >= MIN_FREE * total:
+                return
+            self.cache.popitem(last=False)
+            self.evicted += 1
+            torch.cuda.empty_cache()
+
     def summary(self) -> dict:
-        return {"graphs": len(self.cache), "captured": self.captured, "replayed": self.replayed, "eager": self.eager}
+        return {"graphs": len(self.cache), "captured": self.captured, "replayed": self.replayed, "eager": self.eager,
+                "evicted": self.evicted}
