@@ -281,3 +281,16 @@ def test_marching_cubes_kernels_can_be_preloaded():
     rep: dict = {}
     s = prepare_kernels("cpu", ops=("marching_cubes",), report=rep)
     assert s >= 0 and isinstance(rep["compiled"], list)
+
+
+def test_an_empty_mesh_converts_and_evaluates():
+    """A run that lost its surface (it happened on a GPU matrix cell) gets an empty mesh and
+    infinite errors, not a trimesh traceback from empty normals/colours."""
+    import numpy as np
+
+    from fastneus.export.mesh import MeshArrays
+
+    m = MeshArrays(np.zeros((0, 3), np.float32), np.zeros((0, 3), np.int64), normals=np.zeros((0, 3), np.float32),
+                   colors=np.zeros((0, 3), np.uint8))
+    tm = m.to_trimesh()
+    assert len(tm.vertices) == 0 and len(tm.faces) == 0

@@ -365,6 +365,8 @@ class MeshArrays:
     def to_trimesh(self):
         import trimesh
 
+        if len(self.vertices) == 0:  # a run that lost its surface: trimesh rejects empty normals/colours
+            return trimesh.Trimesh(vertices=np.zeros((0, 3)), faces=np.zeros((0, 3), np.int64), process=False)
         return trimesh.Trimesh(vertices=self.vertices, faces=self.faces, vertex_normals=self.normals,
                                vertex_colors=self.colors, process=False)
 
