@@ -42,8 +42,11 @@ def test_ray_count_and_capacity_stay_put_under_jitter():
     assert g.ray_count(1000) != g.ray_count(760) or g.ray_count(1000) == ray_bucket(1000)
 
     class _T:  # what _key reads of a trainer
-        bg_used, masks_used = False, True
         cfg = load_config("cpu-quick")
+
+        @staticmethod
+        def photo_priors(p):
+            return False, False
 
     batch = {"origins": torch.zeros(768, 3), "dirs": torch.zeros(768, 3)}
     cap = g._capacity(_T, batch, 250_000, 0.5)

@@ -111,8 +111,7 @@ class StepGraphs:
         ok = (self.enabled and not tr.rig.active and isinstance(tr.bank, RayBank)
               and tr.cos_anneal(p) >= 1.0
               and not (tr.prior is not None and p < c.init.prior_frac)
-              and not (tr.bg_used and not tr.masks_used and p >= c.loss.bg_start_frac
-                       and losses.background_ramp(p, c.loss.bg_start_frac) < 1.0)
+              and not (tr.photo_priors(p)[0] and losses.background_ramp(p, c.loss.bg_start_frac) < 1.0)
               # the curvature taps' and finite differences' step follows the finest active level
               and not ((c.loss.curvature_weight > 0 or tr.field.sdf_grad == "fd")
                        and tr.field.active_levels < tr.field.hashgrid.levels)
@@ -122,10 +121,7 @@ class StepGraphs:
         return ok
 
     def _key(self, tr, batch: dict, capacity: int, p: float) -> tuple:
-        c = tr.cfg
-        bg = tr.bg_used and not tr.masks_used and p >= c.loss.bg_start_frac
-        fg = getattr(tr, "fg_used", False) and p >= c.loss.fg_start_frac  # the foreground prior's term
-        return (batch["origins"].shape[0], capacity, bg, fg, tuple(sorted(batch)))
+        return (batch["origins"].shape[0], capacity, *tr.photo_priors(p), tuple(sorted(batch)))
 
     def ray_count(self, n: int) -> int:
         """The ray count of this step: the last one while ``n`` stays within 12 % of it (so the

@@ -160,7 +160,7 @@ class Trainer:
             self.masks_note += f"; warning: empty (all-zero) mask {', '.join(self.bank.empty_masks)}"
         self.bg_used, self.bg_note = resolve_bg_prior(cfg, self.masks_used, self.bank.bg_fraction)
         self.bg_lit = self.bg_used and resolve_bg_lit(cfg, self.bank.bg_fraction)
-        self.fg_used = self.bg_used and resolve_fg_prior(cfg, self.bg_used, self.bank.bg_fraction)
+        self.fg_used = resolve_fg_prior(cfg, self.bg_used, self.bank.bg_fraction)
         # the camera's blur on the projected light (fastneus.train.camblur; blur_via=rays: as rays below);
         # auto: none until it is estimated at blur_at_frac (and again at blur_refine_frac) of the run
         # (decide_camera_blur)
@@ -241,6 +241,12 @@ class Trainer:
         self._skipped = int(n)
         if self._skipped_dev is not None:
             self._skipped_dev.zero_()
+
+    def photo_priors(self, p: float) -> tuple[bool, bool]:
+        """(background prior, foreground prior) acting at progress ``p`` (no masks; each from its
+        start fraction). The step's losses and the captured graphs' key both read this."""
+        c = self.cfg.loss
+        return self.bg_used and p >= c.bg_start_frac, self.fg_used and p >= c.fg_start_frac
 
     @property
     def blur_pending(self) -> bool:
@@ -435,7 +441,8 @@ class Trainer:
         """
         c = self.cfg
         i_r, i_b = self.illumination()
-        bg_on = not (self.masks_used and "mask" in batch) and self.bg_used and "bg" in batch and p >= c.loss.bg_start_frac
+        bg_on, fg_on = self.photo_priors(p)  # both off when masks are used
+        bg_on = bg_on and "bg" in batch
         out = shade_samples(self.field, smp, self.rig.projection(), batch["origins"], batch["dirs"], batch["fidx"], c,
                             i_r=i_r, i_b=i_b, cos_anneal=self.cos_anneal(p), curvature=c.loss.curvature_weight > 0,
                             extra_points=xr, lit=bg_on and self.bg_lit)
@@ -463,7 +470,7 @@ class Trainer:
             if lit is not None:  # dark room: a black pixel is empty space only where a surface would be lit
                 is_bg = is_bg * (lit / c.loss.bg_lit_ref).clamp(max=1.0)
             terms |= losses.background_free_space(opacity, is_bg, ramp * c.loss.bg_weight)
-        if self.fg_used and "mask" not in batch and p >= c.loss.fg_start_frac:
+        if fg_on:
             # a pixel (any of its shots, any channel) clearly above the backdrop: the object is there
             rgb = batch["rgb"]
             is_fg = ((rgb.reshape(rgb.shape[0], -1).amax(-1) - c.rays.background) > c.loss.fg_threshold).float()
