@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import shutil
 import time
 from pathlib import Path
@@ -136,13 +137,15 @@ def main() -> None:
                         run_cell(scene, args.device, 2.0, args.masks, ["seed=0"], runs / "warmup")
                         warmed = True
                     d = runs / f"{name}-{shape}-{b:g}s-s{seed}"
+                    made = not os.path.lexists(d)  # only a run folder this call creates is removed below
                     cell = run_cell(scene, args.device, b, args.masks, [f"seed={seed}"] + ov, d)
                     cell.update(variant=name, shape=shape, budget=b, seed=seed, illum=args.illum, masks=args.masks,
                                 overrides=ov)
                     print(json.dumps(cell), flush=True)
                     with open(jsonl, "a") as f:
                         f.write(json.dumps(cell) + "\n")
-                    shutil.rmtree(d, ignore_errors=True)  # keep the device's disk small; the metrics are above
+                    if made and d.is_dir() and not d.is_symlink():  # keep the device's disk small; metrics above
+                        shutil.rmtree(d, ignore_errors=True)
     if stopped:
         print(f"stopped at --max-wall {args.max_wall:g} s: re-run to resume", flush=True)
     rows = [json.loads(x) for x in jsonl.read_text().splitlines() if x.strip()]
