@@ -47,7 +47,7 @@ def _union_ms(intervals: list[tuple[float, float]]) -> float:
     return tot / 1000.0
 
 
-def profile_steps(tr, steps: int) -> dict:
+def profile_steps(tr, steps: int, top_n: int = 12) -> dict:
     """Profile ``steps`` training steps one by one; medians over the steps."""
     from torch.profiler import ProfilerActivity, profile
 
@@ -91,11 +91,22 @@ def profile_steps(tr, steps: int) -> dict:
     med = {k: median(v) for k, v in per.items()}
     med["gpu_idle_pct"] = 100.0 * max(0.0, 1.0 - ratio(med["gpu_busy_ms"], med["wall_ms"]))
     med["samples_per_s_M"] = ratio(med["samples"], med["wall_ms"]) / 1000.0
-    top = sorted(kernel_ms.items(), key=lambda kv: -kv[1])[:12]
+    top = sorted(kernel_ms.items(), key=lambda kv: -kv[1])[:top_n]
     total_k = sum(kernel_ms.values())
     return {"steps": steps, "median": med,
             "top_kernels": [{"kernel": k[:90], "ms_per_step": v / steps, "share_pct": 100 * ratio(v, total_k)}
                             for k, v in top]}
+
+
+def unprofiled_step_ms(tr, steps: int) -> float:
+    """Mean wall ms per step over ``steps`` steps, synchronised only at both ends."""
+    sync = torch.cuda.synchronize if str(tr.device).startswith("cuda") else (lambda: None)
+    sync()
+    t0 = time.perf_counter()
+    for _ in range(steps):
+        tr.train_step()
+    sync()
+    return 1000.0 * (time.perf_counter() - t0) / steps
 
 
 def main() -> None:
@@ -105,6 +116,7 @@ def main() -> None:
     ap.add_argument("--warm-steps", type=int, default=200)
     ap.add_argument("--steps", type=int, default=20)
     ap.add_argument("--out", default="step-profile")
+    ap.add_argument("--top", type=int, default=12, help="how many kernels to list")
     ap.add_argument("overrides", nargs="*", help="key=value config overrides")
     args = ap.parse_intermixed_args()  # key=value overrides may follow the options
 
@@ -118,14 +130,17 @@ def main() -> None:
     tr = make_trainer(scene, args.device, args.overrides, out / "run", preset)
     for _ in range(args.warm_steps):
         tr.train_step()
-    res = profile_steps(tr, args.steps)
+    res = profile_steps(tr, args.steps, args.top)
     m = res["median"]
+    # the same steps outside the profiler (its per-launch bookkeeping inflates a host-bound wall)
+    m["unprofiled_ms"] = unprofiled_step_ms(tr, max(args.steps, 20))
+    m["samples_per_s_M_unprofiled"] = ratio(m["samples"], m["unprofiled_ms"]) / 1000.0
     cmd = command_line("step_profile.py")
     head = (f"{provenance_line(args.device, cmd)} Medians per step ({preset} preset, {tr.n_rays} rays per step)."
             "\n\n")
     row = {k: round(v, 2) for k, v in m.items()}
     md = head + md_table([row], ["wall_ms", "gpu_busy_ms", "gpu_idle_pct", "kernels", "copies", "syncs", "samples",
-                                 "samples_per_s_M"])
+                                 "samples_per_s_M", "unprofiled_ms", "samples_per_s_M_unprofiled"])
     md += "\n\nKernels taking the most device time (ms per step, share of all kernel time):\n\n"
     md += md_table([{k: (round(v, 3) if isinstance(v, float) else v) for k, v in r.items()}
                     for r in res["top_kernels"]], ["kernel", "ms_per_step", "share_pct"])
