@@ -19,6 +19,8 @@ _OPS = {
     "laser_light": "project",
     "raycast_mesh": "raycast",
     "marching_cubes": "mesh",
+    "adam_update": "adam",
+    "adam_nonfinite": "adam",
 }
 
 BACKENDS = ("warp", "torch")

@@ -8,6 +8,7 @@ import os
 import subprocess
 import sys
 
+import pytest
 import torch
 
 from fastneus.train.adam import Adam
@@ -158,4 +159,95 @@ def test_device_update_matches_gated_step():
         p.grad = torch.full_like(p, float("nan"))
     a.prepare_device_step()
     a.device_update(torch.tensor(False))
+    assert all(torch.equal(p.detach(), q) for p, q in zip(ours, before))
+
+
+# ----------------------------------------------------------------- the fused update (kernels/adam.py)
+def _devices():
+    return ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
+
+
+def _fused_case(gen, device, n=70001):
+    p = torch.randn(n, generator=gen).to(device)
+    g = (torch.randn(n, generator=gen) * 10 ** torch.randint(-3, 2, (n,), generator=gen)).to(device)
+    g[::997] = float("nan")
+    g[5::1009] = float("inf")
+    g[7::1013] = -float("inf")
+    m = (torch.randn(n, generator=gen) * 0.1).to(device)
+    v = torch.rand(n, generator=gen).to(device) * 0.01
+    scal = torch.tensor([[-1e-3, 1.3], [-2e-2, 1.05]], device=device)
+    return p, g, m, v, scal
+
+
+@pytest.mark.parametrize("device", _devices())
+def test_fused_adam_kernel_matches_its_torch_twin_and_skips_exactly(device):
+    from fastneus.kernels import get_op
+
+    seed = int.from_bytes(os.urandom(4), "little")
+    gen = torch.Generator().manual_seed(seed)
+    warp_op, torch_op = get_op("adam_update", "warp"), get_op("adam_update", "torch")
+    p, g, m, v, scal = _fused_case(gen, device)
+    for row in (0, 1):
+        a = [t.clone() for t in (p, m, v)]
+        b = [t.clone() for t in (p, m, v)]
+        ok = torch.ones(1, device=device)
+        warp_op(a[0], g, a[1], a[2], scal, row, ok, 0.9, 0.99, 1e-15)
+        torch_op(b[0], g, b[1], b[2], scal, row, ok, 0.9, 0.99, 1e-15)
+        for x, y in zip(a, b):  # Warp may contract a*b+c into one rounding
+            torch.testing.assert_close(x, y, rtol=2e-6, atol=1e-6, msg=f"seed {seed}")
+        assert torch.isfinite(a[0]).all() and not torch.equal(a[0], p)  # non-finite gradients counted as 0
+        off = [t.clone() for t in (p, m, v)]
+        warp_op(off[0], g, off[1], off[2], scal, row, torch.zeros(1, device=device), 0.9, 0.99, 1e-15)
+        assert all(torch.equal(x, y) for x, y in zip(off, (p, m, v)))
+
+
+@pytest.mark.parametrize("device", _devices())
+def test_fused_nonfinite_count_matches_its_twin(device):
+    from fastneus.kernels import get_op
+
+    gen = torch.Generator().manual_seed(int.from_bytes(os.urandom(4), "little"))
+    _, g, _, _, _ = _fused_case(gen, device)
+    for x in (g, torch.randn(1000, generator=gen).to(device)):
+        counts = []
+        for backend in ("warp", "torch"):
+            c = torch.full((1,), 2.0, device=device)
+            get_op("adam_nonfinite", backend)(x, c)
+            counts.append(float(c))
+        assert counts[0] == counts[1] == 2.0 + float((~torch.isfinite(x)).sum())
+
+
+@pytest.mark.parametrize("backend", ["warp", "torch"])
+def test_fused_adam_matches_foreach_update_over_steps(backend):
+    """Adam.use_fused: gated_step and the guard give the foreach path's parameters (float32
+    rounding), a NaN step is skipped exactly, and the guard's count finds it."""
+    from fastneus.train.guard import finite_flag
+
+    seed = int.from_bytes(os.urandom(4), "little")
+    gen = torch.Generator().manual_seed(seed)
+    init = [t.float() for t in _params(gen)]
+    ours = [p.clone().requires_grad_(True) for p in init]
+    ref = [p.clone().requires_grad_(True) for p in init]
+    a, b = Adam(_groups(ours), betas=(0.9, 0.99), eps=1e-15), Adam(_groups(ref), betas=(0.9, 0.99), eps=1e-15)
+    a.use_fused(backend)
+    loss = torch.tensor(1.0)
+    for t in range(8):
+        for o in (a, b):
+            for g in o.param_groups:
+                g["lr"] = 1e-2 / (1 + t)
+        for p, q in zip(ours, ref):
+            g = torch.randn(p.shape, generator=gen)
+            p.grad, q.grad = g.clone(), g.clone()
+        ok_a, ok_b = finite_flag(a, loss), finite_flag(b, loss)
+        assert bool(ok_a) and bool(ok_b)
+        a.gated_step(ok_a)
+        b.gated_step(ok_b)
+    for x, y in zip(ours, ref):
+        torch.testing.assert_close(x, y, rtol=1e-5, atol=1e-7, msg=f"seed {seed}")
+    before = [p.detach().clone() for p in ours]
+    for i, p in enumerate(ours):
+        p.grad = torch.randn(p.shape, generator=gen)
+    ours[1].grad.view(-1)[0] = float("nan")
+    ok = finite_flag(a, loss)
+    assert not bool(ok) and float(a.nonfinite_count()) == 1.0
+    a.gated_step(ok)
     assert all(torch.equal(p.detach(), q) for p, q in zip(ours, before))

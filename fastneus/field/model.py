@@ -222,8 +222,10 @@ class SDFField(nn.Module):
             net_in = net_in.detach().requires_grad_()
         out = self.sdf_net(net_in)
         (g,) = torch.autograd.grad(out[:, 0].sum(), net_in, create_graph=True)  # [N, 3 + L*F]
-        # d feats / d x = 0.5 jac (u = (x + 1) / 2); bmm form of einsum('nfk,nf->nk')
-        grad = g[:, :3] + 0.5 * torch.bmm(g[:, None, 3:], jac)[:, 0]
+        # d feats / d x = 0.5 jac (u = (x + 1) / 2): einsum('nf,nfk->nk') as a product and a sum,
+        # not bmm: [N,1,F] x [N,F,3] is a batched gemv in cuBLAS, 1.49 ms forward + backward at
+        # 2^18 samples on an H100 against 0.43 ms this way (docs/perf-notes, entry 17)
+        grad = g[:, :3] + 0.5 * (g[:, 3:, None] * jac).sum(1)
         return out, grad
 
     def _sdf_and_grad_analytic(self, x: torch.Tensor, with_curvature: bool):

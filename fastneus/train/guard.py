@@ -7,6 +7,9 @@ import torch
 def finite_flag(opt, loss: torch.Tensor) -> torch.Tensor:
     """[] bool on the loss's device: the loss and every gradient of ``opt``'s parameters are
     finite (one fused norm over all gradients; no host read)."""
+    count = opt.nonfinite_count() if hasattr(opt, "nonfinite_count") else None
+    if count is not None:  # the fused count: one read pass per gradient instead of a norm
+        return torch.isfinite(loss.detach().float().reshape(())) & (count.reshape(()) == 0)
     grads = [p.grad for g in opt.param_groups for p in g["params"] if p.grad is not None]
     total = loss.detach().float().reshape(())
     if grads:

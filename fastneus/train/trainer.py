@@ -204,6 +204,8 @@ class Trainer:
         for g in groups:
             g["base_lr"] = g["lr"]
         self.opt = Adam(groups, betas=(0.9, 0.99), eps=cfg.optim.adam_eps)  # torch.optim's would import TorchDynamo (4 s)
+        if self.device.type == "cuda":  # one fused pass per tensor for the device-guarded update (the CPU keeps step())
+            self.opt.use_fused(cfg.run.backend)
         self.step = 0
         self.n_rays = cfg.rays.init_rays
         self.elapsed = 0.0          # training seconds, kept across resume
@@ -635,7 +637,7 @@ class Trainer:
 
         ops = ("hash_encode", "march_rays", "render_pattern") + self.rig.kernel_ops()
         if self.device.type == "cuda":
-            ops += ("marching_cubes",)
+            ops += ("marching_cubes", "adam_update")
         return prepare_kernels(self.device, say=self.console.print if self.console is not None else None,
                                backend=self.cfg.run.backend, ops=ops, report=report)
 
