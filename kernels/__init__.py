@@ -12,6 +12,7 @@ import importlib
 _OPS = {
     "hash_encode": "hashgrid",
     "hash_encode_jac": "hashgrid",
+    "grad_from_jac": "hashgrid",
     "march_rays": "occupancy",
     "occupancy_alpha": "occupancy",
     "render_pattern": "render",

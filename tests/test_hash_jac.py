@@ -403,3 +403,41 @@ def test_training_steps_analytic(small_scene, tmp_path):
     assert any(r is not None for r in recs)
     assert all(torch.isfinite(p).all() for p in tr.field.parameters())
     assert not torch.equal(t0, tr.field.table.detach())
+
+
+# ----------------------------------------------------------------- grad_from_jac (Warp) vs its twin
+@pytest.mark.parametrize("device", DEVICES)
+@pytest.mark.parametrize("F", [1, 16, 32])
+def test_grad_from_jac_matches_twin_values_and_gradients(device, F):
+    from fastneus.kernels.hashgrid import grad_from_jac, grad_from_jac_torch
+
+    seed = _seed()
+    gen = torch.Generator().manual_seed(seed)
+    n = 5003
+    g0 = torch.randn(n, F + 3, generator=gen).to(device)
+    j0 = torch.randn(n, F, 3, generator=gen).to(device)
+    up = torch.randn(n, 3, generator=gen).to(device)
+    res = []
+    for op in (grad_from_jac, grad_from_jac_torch):
+        g, j = g0.clone().requires_grad_(True), j0.clone().requires_grad_(True)
+        out = op(g, j, 0.5)
+        res.append((out.detach(), *torch.autograd.grad(out, [g, j], up)))
+    for a, b in zip(*res):
+        torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-5, msg=f"seed {seed}")
+    for need in ("g", "jac"):  # one input without a gradient
+        g = g0.clone().requires_grad_(need == "g")
+        j = j0.clone().requires_grad_(need == "jac")
+        (d,) = torch.autograd.grad(grad_from_jac(g, j, 0.5), [g if need == "g" else j], up)
+        torch.testing.assert_close(d, res[1][1 if need == "g" else 2], rtol=1e-5, atol=1e-5)
+
+
+def test_grad_from_jac_twin_gradcheck_float64_and_shape_errors():
+    from fastneus.kernels.hashgrid import grad_from_jac, grad_from_jac_torch
+
+    gen = torch.Generator().manual_seed(_seed())
+    g = torch.randn(4, 8, generator=gen, dtype=torch.float64, requires_grad=True)
+    j = torch.randn(4, 5, 3, generator=gen, dtype=torch.float64, requires_grad=True)
+    assert torch.autograd.gradcheck(lambda g, j: grad_from_jac_torch(g, j, 0.5), (g, j))
+    with pytest.raises(ValueError, match="grad_from_jac"):
+        grad_from_jac(torch.zeros(4, 8), torch.zeros(4, 6, 3), 0.5)
+    assert grad_from_jac(torch.zeros(0, 8), torch.zeros(0, 5, 3), 0.5).shape == (0, 3)
