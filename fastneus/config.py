@@ -205,9 +205,16 @@ class LossSection:
                          choices=("auto", "on", "off"))
     fg_threshold: float = knob(0.02, "linear brightness above the background colour that makes a pixel foreground "
                                "(fg_prior)", lo=0.0, lo_open=True)
+    fg_relative: float = knob(0.5, "a foreground pixel must also be this share of the brightest pixel within 2 px "
+                              "(the lens's halo around a bright object is not the object); 0 = threshold only",
+                              lo=0.0, hi=1.0)
     fg_start_frac: float = knob(0.2, "the foreground prior acts from this fraction of the run (from the start it "
                                 "grew blobs: ant Dark 14.6 vs 5.3 mm GT->rec)", **FRAC)
-    bg_tolerance: float = knob(0.008, "per-channel distance to `background` still counted as it", lo=0.0)
+    bg_tolerance: float = knob(0.008, "per-channel distance to `background` still counted as it (the floor: see "
+                               "bg_noise_k)", lo=0.0)
+    bg_noise_k: float = knob(3.0, "widen bg_tolerance to this many times the photos' noise floor (the median pixel's "
+                             "distance from `background`, when that pixel is backdrop), at most fg_threshold: a real "
+                             "camera's black is not 0 (realistic captures: 0.004); 0 = the fixed tolerance", lo=0.0)
     robust: str = knob("l1", "photometric penalty on |rendered - photo|: l1 | charbonnier | huber | cauchy "
                        "(scale robust_eps)", choices=("l1", "charbonnier", "huber", "cauchy"))
     robust_eps: float = knob(0.01, "scale of the charbonnier / huber penalty (linear units)", lo=0.0, lo_open=True)
