@@ -17,8 +17,7 @@ import numpy as np
 import torch
 
 from fastneus.errors import FastneusError
-from fastneus.train.rays import (RayBank, backdrop_noise, backdrop_tolerance, background_codes, draw_pixels, lut_mean,
-                                 normalised_camera, pixel_fields)
+from fastneus.train.rays import RayBank, background_codes, draw_pixels, lut_mean, normalised_camera, pixel_fields
 
 
 def group_views(scene, frames: list[int]) -> list[list[int]]:
@@ -58,28 +57,21 @@ class ShotBank:
         device: where the store lives.
         shots: shots per ray and step: 0 or >= the most shots of a view = all of them, in order
             (views with fewer shots repeat theirs cyclically); else that many drawn per ray at random.
-        load_masks, brightness_cdf, background, bg_tolerance, lut, bg_noise_k, bg_cap: as for
-            ``RayBank`` (the noise floor from the first shot of up to 8 viewpoints); ``fg_relative``
-            is accepted and unused (no per-pixel foreground flags: the trainer thresholds each
-            batch); a pixel is
+        load_masks, brightness_cdf, background, bg_tolerance, lut: as for ``RayBank`` (the fixed
+            tolerance: multi-shot captures project onto a lit scene, never a dark room; no
+            foreground flags, the trainer thresholds each batch); a pixel is
             background when it is in every shot, its brightness is its brightest shot's, its mask
             is the first shot's.
     """
 
     def __init__(self, scene, frames: list[int], device, shots: int = 0, load_masks: bool = False,
                  brightness_cdf: bool = False, background: float | None = None, bg_tolerance: float = 2.0 / 255,
-                 lut=None, bg_noise_k: float = 0.0, bg_cap: float = 1.0, fg_relative: float = 0.0):
+                 lut=None):
         self.frames = list(frames)
         self.device = torch.device(device)
         self.lut = None if lut is None else torch.as_tensor(lut, dtype=torch.float32, device=self.device)  # [256]
         hist = torch.zeros(3, 256, dtype=torch.int64) if lut is not None else None  # code histograms (mean)
-        self.bg_noise, self.bg_tolerance = 0.0, bg_tolerance
         self.fg = None
-        if background is not None and bg_noise_k > 0:  # the backdrop's noise floor, from the first shots
-            first = [torch.from_numpy(np.ascontiguousarray(scene.image(self.frames[g[0]]).reshape(-1, 3)))
-                     for g in group_views(scene, self.frames)[:8]]
-            self.bg_noise = backdrop_noise(torch.cat(first), self.lut, background)
-            bg_tolerance = self.bg_tolerance = backdrop_tolerance(bg_tolerance, bg_noise_k, self.bg_noise, bg_cap)
         bg_code = background_codes(self.lut.cpu(), background, bg_tolerance) if lut is not None and \
             background is not None else None
         self.port = None  # rays in air only (make_bank sends ported cameras to RayBank)
@@ -191,5 +183,7 @@ def make_bank(scene, frames: list[int], device, cfg, refraction: bool = True, **
     refinement (its corrections index the bank's per-frame camera tables)."""
     ported = refraction and any(scene.frame_camera(i).port is not None for i in frames)
     if cfg.rays.group_shots and not ported and not cfg.rig.pose_refine and is_multishot(scene, frames):
-        return ShotBank(scene, frames, device, shots=cfg.rays.shots_per_ray, **kw)
+        single_view_only = ("bg_noise_k", "bg_cap", "fg_relative")  # RayBank's noise floor and foreground flags
+        return ShotBank(scene, frames, device, shots=cfg.rays.shots_per_ray,
+                        **{k: v for k, v in kw.items() if k not in single_view_only})
     return RayBank(scene, frames, device, refraction=refraction, **kw)

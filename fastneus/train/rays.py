@@ -264,16 +264,13 @@ class RayBank:
             self.port = torch.tensor([p.row() if p is not None else [0.0] * 8 for p in ports], **f32)
             self.radius = float(scene.bounds.radius)
         self.bg, self.bg_fraction = None, 0.0
-        self.bg_noise, self.bg_tolerance, self.bg_floor = 0.0, bg_tolerance, None
+        self.bg_noise, self.bg_tolerance = 0.0, bg_tolerance
+        self._background, self._bg_floor = background, bg_tolerance
         if background is not None:
             self.bg_noise = backdrop_noise(self.rgb, self.lut, background)
-            wide = backdrop_tolerance(bg_tolerance, bg_noise_k, self.bg_noise, bg_cap)
-            self.bg = self._bg_flags(background, wide)                          # [sum HW] bool
+            self.bg_tolerance = backdrop_tolerance(bg_tolerance, bg_noise_k, self.bg_noise, bg_cap)
+            self.bg = self._bg_flags(background, self.bg_tolerance)             # [sum HW] bool
             self.bg_fraction = float(self.bg.float().mean())
-            if wide > bg_tolerance:  # the floor's flags too: the trainer keeps them outside a dark room
-                self.bg_floor = self._bg_flags(background, bg_tolerance)
-            self.bg_floor_tolerance = bg_tolerance
-            self.bg_tolerance = wide
         self.fg = None
         if background is not None and fg_relative > 0:
             self.fg = foreground_flags(self.rgb, self.lut, background, bg_cap, fg_relative, sizes)
@@ -293,9 +290,9 @@ class RayBank:
     def use_floor_background(self) -> None:
         """Flag background with the fixed tolerance (outside a dark room the wider, noise-floor
         tolerance carves dim, ambient-lit surface: realistic rock Dark 9.0 -> 12.7 mm)."""
-        if self.bg_floor is not None:
-            self.bg, self.bg_floor = self.bg_floor, None
-            self.bg_tolerance = self.bg_floor_tolerance
+        if self.bg is not None and self.bg_tolerance > self._bg_floor:
+            self.bg_tolerance = self._bg_floor
+            self.bg = self._bg_flags(self._background, self.bg_tolerance)
 
     def _empty_masks(self, scene, masks: list) -> list[str]:
         """Mask files that are all zero. All of them empty is an error (nothing to reconstruct:

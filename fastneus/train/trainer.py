@@ -59,8 +59,7 @@ def resolve_masks(scene, frames: list[int], cfg: Config) -> tuple[bool, str]:
     return used, f"masks: {cfg.loss.masks} -> {'on' if used else 'off'} ({why})"
 
 
-def resolve_bg_prior(cfg: Config, masks_used: bool, bg_fraction: float, tolerance: float | None = None,
-                     noise: float = 0.0) -> tuple[bool, str]:
+def resolve_bg_prior(cfg: Config, masks_used: bool, bg_fraction: float) -> tuple[bool, str]:
     """Decide whether background-coloured pixels count as free space (``bg_prior``).
 
     Without masks nothing else tells the model that a black pixel is empty space rather than
@@ -68,9 +67,6 @@ def resolve_bg_prior(cfg: Config, masks_used: bool, bg_fraction: float, toleranc
     least 5% of the training pixels have the background colour (a dark room, lasers only,
     synthetic data); a scene with a real backdrop has few such pixels and keeps it off.
 
-    Args:
-        tolerance, noise: the bank's background tolerance and the photos' noise floor
-            (``fastneus.train.rays.backdrop_tolerance``), named in the note when widened.
     Returns:
         (used, note) for the run summary.
     """
@@ -79,8 +75,6 @@ def resolve_bg_prior(cfg: Config, masks_used: bool, bg_fraction: float, toleranc
     if cfg.loss.bg_prior == "off" or cfg.loss.bg_weight <= 0:
         return False, "background prior: off"
     share = f"{100 * bg_fraction:.0f}% of training pixels are background colour {cfg.rays.background:g}"
-    if tolerance is not None and tolerance > cfg.loss.bg_tolerance:  # widened to the photos' noise floor
-        share += f" within {tolerance:.3g} ({cfg.loss.bg_noise_k:g} x the photos' noise floor {noise:.2g})"
     used = cfg.loss.bg_prior == "on" or bg_fraction >= 0.05
     note = f"background prior: {cfg.loss.bg_prior} -> {'on' if used else 'off'} ({share})"
     if used and resolve_fg_prior(cfg, used, bg_fraction):
@@ -160,24 +154,23 @@ class Trainer:
         self.bank = make_bank(scene, self.frames, self.device, cfg, load_masks=self.masks_used,
                               brightness_cdf=cfg.rays.bright_fraction > 0,
                               background=cfg.rays.background if want_bg else None, bg_tolerance=cfg.loss.bg_tolerance,
-                              bg_noise_k=cfg.loss.bg_noise_k, bg_cap=cfg.loss.fg_threshold,
-                              **({"fg_relative": cfg.loss.fg_relative} if cfg.loss.fg_relative > 0 else {}),
+                              bg_noise_k=cfg.loss.bg_noise_k, bg_cap=cfg.loss.fg_threshold, fg_relative=cfg.loss.fg_relative,
                               refraction=cfg.rig.refraction,
                               lut=None if is_identity(self.response) else decode_lut(self.response))
         if getattr(self.bank, "empty_masks", None):  # all-zero masks: the object is outside those views (or a wrong file)
             self.masks_note += f"; warning: empty (all-zero) mask {', '.join(self.bank.empty_masks)}"
+        self.bg_used, self.bg_note = resolve_bg_prior(cfg, self.masks_used, self.bank.bg_fraction)
+        self.fg_used = resolve_fg_prior(cfg, self.bg_used, self.bank.bg_fraction)
         # the noise-floor tolerance (fastneus.train.rays.backdrop_tolerance) decides whether this is a
         # dark room; it flags the pixels the background prior carves only there, where the foreground
         # prior protects the object (elsewhere it carved dim surface: realistic rock Dark 9.0 -> 12.7 mm)
-        self.fg_used = resolve_fg_prior(cfg, not self.masks_used and resolve_bg_prior(cfg, False, self.bank.bg_fraction)[0],
-                                        self.bank.bg_fraction)
         if not self.fg_used and hasattr(self.bank, "use_floor_background"):
             self.bank.use_floor_background()
-        self.bg_used, self.bg_note = resolve_bg_prior(cfg, self.masks_used, self.bank.bg_fraction,
-                                                      getattr(self.bank, "bg_tolerance", cfg.loss.bg_tolerance),
-                                                      getattr(self.bank, "bg_noise", 0.0))
+        tol = getattr(self.bank, "bg_tolerance", cfg.loss.bg_tolerance)
+        if self.bg_used and tol > cfg.loss.bg_tolerance:
+            self.bg_note += (f"; background within {tol:.3g} of it ({cfg.loss.bg_noise_k:g} x the photos' noise "
+                             f"floor {self.bank.bg_noise:.2g})")
         self.bg_lit = self.bg_used and resolve_bg_lit(cfg, self.bank.bg_fraction)
-        self.fg_used = resolve_fg_prior(cfg, self.bg_used, self.bank.bg_fraction)
         # the camera's blur on the projected light (fastneus.train.camblur; blur_via=rays: as rays below);
         # auto: none until it is estimated at blur_at_frac (and again at blur_refine_frac) of the run
         # (decide_camera_blur)
