@@ -63,6 +63,11 @@ def _nonfinite_kernel(g: wp.array(dtype=float), count: wp.array(dtype=float)):
         wp.atomic_add(count, 0, 1.0)  # rare: only a broken step writes
 
 
+def _check_count(g: torch.Tensor, count: torch.Tensor) -> None:
+    if g.dtype != torch.float32 or count.dtype != torch.float32 or count.numel() != 1 or count.device != g.device:
+        raise ValueError("adam_nonfinite: float32 g and a [1] float32 count on its device")
+
+
 def adam_nonfinite(g: torch.Tensor, count: torch.Tensor) -> None:
     """Add the number of non-finite entries of ``g`` to ``count`` (one read pass, no host sync).
 
@@ -70,8 +75,7 @@ def adam_nonfinite(g: torch.Tensor, count: torch.Tensor) -> None:
         g: any-shape float32 tensor (a gradient).
         count: [1] float32 accumulator on g's device.
     """
-    if g.dtype != torch.float32 or count.dtype != torch.float32 or count.numel() != 1 or count.device != g.device:
-        raise ValueError("adam_nonfinite: float32 g and a [1] float32 count on its device")
+    _check_count(g, count)
     flat = g.contiguous().reshape(-1)
     if flat.numel() == 0:
         return
@@ -82,8 +86,7 @@ def adam_nonfinite(g: torch.Tensor, count: torch.Tensor) -> None:
 
 def adam_nonfinite_torch(g: torch.Tensor, count: torch.Tensor) -> None:
     """Twin of :func:`adam_nonfinite`."""
-    if g.dtype != torch.float32 or count.dtype != torch.float32 or count.numel() != 1 or count.device != g.device:
-        raise ValueError("adam_nonfinite: float32 g and a [1] float32 count on its device")
+    _check_count(g, count)
     count.add_((~torch.isfinite(g)).sum().to(torch.float32).reshape(count.shape))
 
 
