@@ -97,16 +97,18 @@ class RaysSection:
     bound: str = knob("sphere", "region of interest in normalised space: sphere | box", choices=("sphere", "box"),
                       model=True)
     background: float = knob(0.0, "background colour behind the object (synthetic data: black)", lo=0.0, hi=1.0)
-    camera_blur: str = knob("0", "camera blur (lens defocus + the pixel's area), Gaussian sigma in pixels, "
-                            "applied as blur_via says: auto (estimated from the data at blur_at_frac and blur_refine_frac of the run, "
-                            "fastneus.train.camblur; recommended for Normal-light captures, off by default because in "
-                            "dark rooms it pushed the learned i_r to 2x the truth on the H100 matrix), or a number in "
-                            "[0, 10] (0 = one ray per pixel through its centre, the patterns as they are)")
+    camera_blur: str = knob("auto", "camera blur (lens defocus + the pixel's area), Gaussian sigma in pixels, "
+                            "applied as blur_via says: auto (estimated from the data at blur_at_frac and "
+                            "blur_refine_frac of the run, fastneus.train.blurfit; a sharp capture keeps 0), or a "
+                            "number in [0, 10] (0 = one ray per pixel through its centre, the patterns as they are)")
     blur_at_frac: float = knob(0.3, "camera_blur=auto: fraction of the run at which the blur is estimated "
                                "(the geometry and colours must be roughly fit by then)", **FRAC)
     blur_refine_frac: float = knob(0.5, "camera_blur=auto: fraction of the run at which it is estimated again, "
                                    "on the field trained with the first estimate (a field trained on sharp "
                                    "patterns favours a sharper blur); 0 or <= blur_at_frac = once", **FRAC)
+    blur_final_frac: float = knob(0.0, "camera_blur=auto: fraction of the run at which it is estimated a third "
+                                  "time (each round moves toward the fixed point on a blurred capture); "
+                                  "0 or <= blur_refine_frac = no third round", **FRAC)
     blur_via: str = knob("pattern", "how camera_blur enters the model: pattern = the projected light only, each "
                          "pattern image blurred once by it in projector pixels (no cost per step); rays = each "
                          "training pixel is blur_rays rays spread by it, their colours averaged",
@@ -232,8 +234,11 @@ class IllumSection:
     illum_init: str = knob("scene", "start i_r, i_b at the scene's values | ones", choices=("scene", "ones"))
     response: str = knob("auto", "camera response the photos are decoded with: auto (scene.json, else the "
                          "files' tags, else srgb) | linear | srgb | gamma=G")
-    exposure: bool = knob(False, "learn a gain per photo (auto-exposure; the first training frame's is 1); off by "
-                          "default: it cost accuracy on CPU tiny scenes, docs/benchmarks/realistic-cpu.md", model=True)
+    exposure: str = knob("auto", "learn a gain per photo (auto-exposure; the first training frame's is 1): auto "
+                         "(at exposure_at_frac of the run, each photo's gain is fit against the render; learned from "
+                         "then on when they spread by > 3 %: on fixed-exposure captures learning them cost "
+                         "accuracy) | on | off", choices=("auto", "on", "off"), model=True)
+    exposure_at_frac: float = knob(0.2, "exposure=auto: fraction of the run at which it is decided", **FRAC)
     lr_exposure: float = knob(1e-2, "learning rate of the per-photo log-gains", lo=0.0)
 
 
@@ -462,6 +467,9 @@ def coerce(f: dataclasses.Field, value: Any, source: str, where: str) -> Any:
             return value
         if isinstance(value, bool) and f.metadata.get("choices") and "off" in f.metadata["choices"]:
             return "on" if value else "off"  # YAML 1.1 reads on / off as booleans
+        if isinstance(value, str) and f.metadata.get("choices") and "off" in f.metadata["choices"] \
+                and value.lower() in ("true", "false", "yes", "no"):
+            return "on" if value.lower() in ("true", "yes") else "off"  # a knob that was a boolean before
         if not isinstance(value, (str, int, float)) or isinstance(value, bool):
             raise ValueError("expected a word")
         return str(value)

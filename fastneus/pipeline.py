@@ -313,16 +313,20 @@ def _train_and_finish(trainer, scene, cfg: Config, out: Path, device: str, conso
         console.print(trainer.bg_note)
         console.print(trainer.response_note)
         console.print(trainer.blur_note(), soft_wrap=True, highlight=False, markup=False)
+        console.print(trainer.exposure_note(), soft_wrap=True, highlight=False, markup=False)
         length = f"time budget {cfg.run.time_budget:g} s" if cfg.run.time_budget > 0 else f"{cfg.run.steps} steps"
         console.print(f"run length: {length}; every schedule is a fraction of it")
     atomic_write_json(out / "run.json", {"scene": str(scene.root), "device": str(device), "preset": cfg.run.preset,
                                          "threads": trainer.threads, "masks": trainer.masks_note,
                                          "background_prior": trainer.bg_note, "response": trainer.response_note,
-                                         "camera_blur": trainer.blur_decision, **provenance()})
+                                         "camera_blur": trainer.blur_decision,
+                                         "exposure": trainer.exposure_decision, **provenance()})
     with stop_on_signal(trainer, out):
         last = trainer.fit(final_save=not finish)  # finish_run saves it right after mesh.ply
     if trainer.blur_decision.get("mode") == "auto":  # decided during the run (camera_blur=auto)
         _update_run_json(out, {"camera_blur": trainer.blur_decision})
+    if trainer.exposure_decision.get("mode") == "auto":  # decided during the run (exposure=auto)
+        _update_run_json(out, {"exposure": trainer.exposure_decision})
     if console is not None and last:
         console.print(f"trained {trainer.step} steps in {trainer.elapsed:.1f}s: loss {last['loss']:.4f}, "
                       f"PSNR {last['psnr']:.2f} dB, i_r {last['i_r']:.4f}, i_b {last['i_b']:.4f}")

@@ -175,8 +175,10 @@ class Trainer:
         # auto: none until it is estimated at blur_at_frac (and again at blur_refine_frac) of the run
         # (decide_camera_blur)
         blur = camera_blur_sigma(cfg.rays.camera_blur)
-        fr = cfg.rays.blur_at_frac, cfg.rays.blur_refine_frac
-        self.blur_due: list[float] = ([fr[0]] + ([fr[1]] if fr[1] > fr[0] else [])) if blur is None else []
+        self.blur_due: list[float] = []  # the fractions of the run still to estimate at, increasing
+        for f in (cfg.rays.blur_at_frac, cfg.rays.blur_refine_frac, cfg.rays.blur_final_frac) if blur is None else ():
+            if not self.blur_due or f > self.blur_due[-1]:
+                self.blur_due.append(f)
         self.blur_decision: dict = {"mode": "auto", "at_frac": list(self.blur_due), "sigma": None, "rounds": []} \
             if blur is None else {"mode": "set", "sigma": blur}
         self.camera_blur = 0.0 if blur is None else blur  # the blur in use, camera px
@@ -207,10 +209,15 @@ class Trainer:
             {"params": [self.log_ir, self.log_ib], "lr": cfg.optim.lr_illum, "name": "illum"}] + self.rig.param_groups()
         # per-photo exposure gain (auto-exposure): a log-gain per training frame but the first (gain 1:
         # it fixes the scale that i_r, i_b and the colours share)
+        # (auto: the gains exist from the start at 1, learned only once decide_exposure finds the
+        # photos' exposures differ; a gain of exactly 1 leaves the run as it is without them)
         self.log_gain = None
-        if cfg.illum.exposure and len(self.frames) > 1:
+        mode = cfg.illum.exposure if len(self.frames) > 1 else "off"
+        if mode != "off":
             self.log_gain = torch.nn.Parameter(torch.zeros(len(self.frames) - 1, device=self.device))  # [F-1]
             groups.append({"params": [self.log_gain], "lr": cfg.illum.lr_exposure, "name": "exposure"})
+        self.exposure_due = cfg.illum.exposure_at_frac if mode == "auto" else None
+        self.exposure_decision: dict = {"mode": mode, "learned": mode == "on"}
         for g in groups:
             g["base_lr"] = g["lr"]
         self.opt = Adam(groups, betas=(0.9, 0.99), eps=cfg.optim.adam_eps)  # torch.optim's would import TorchDynamo (4 s)
@@ -303,7 +310,8 @@ class Trainer:
                 # jittering by ~lr_illum (3%) at the end of the run
                 g["lr"] = g["base_lr"] * decay if learn_illum else 0.0
             elif g["name"] == "exposure":  # per-photo gains wait for a surface to compare photos on
-                g["lr"] = g["base_lr"] * decay if p >= c.illum.illum_warmup_frac else 0.0
+                on = self.exposure_decision["learned"] and p >= c.illum.illum_warmup_frac
+                g["lr"] = g["base_lr"] * decay if on else 0.0
             elif g["name"].startswith("rig_"):  # own warm-up, then the common decay
                 g["lr"] = g["base_lr"] * decay * self.rig.lr_gate(g["name"], p)
             elif frozen and g["name"] in ("geometry", "variance"):
@@ -363,6 +371,42 @@ class Trainer:
             self.console.print(self.blur_note(), soft_wrap=True, highlight=False, markup=False)
         return self.blur_decision
 
+    def decide_exposure(self) -> dict:
+        """``exposure=auto``: fit each photo's gain against the current render
+        (:func:`fastneus.train.exposure.estimate_exposure`) and learn the gains from now on only when
+        they spread by more than :data:`fastneus.train.exposure.SPREAD_ON` (they start at the fit);
+        otherwise they stay at 1 and the run goes on as without them. Printed, kept in
+        :attr:`exposure_decision` (run.json, checkpoint).
+
+        Returns:
+            The decision (``learned``, ``spread``, ``log_gains``, ``step``, ``seconds``).
+        """
+        from fastneus.train.exposure import SPREAD_ON, estimate_exposure
+
+        self.exposure_due = None
+        info = estimate_exposure(self)
+        learned = info["spread"] > SPREAD_ON
+        if learned:
+            with torch.no_grad():
+                self.log_gain.copy_(torch.tensor(info["log_gains"][1:], dtype=self.log_gain.dtype, device=self.device))
+        self.exposure_decision.update(learned=learned, step=self.step, **info)
+        if self.console is not None:
+            self.console.print(self.exposure_note(), soft_wrap=True, highlight=False, markup=False)
+        return self.exposure_decision
+
+    def exposure_note(self) -> str:
+        """One line on the per-photo exposure gains (printed; run.json keeps :attr:`exposure_decision`)."""
+        from fastneus.train.exposure import SPREAD_ON
+
+        d = self.exposure_decision
+        if d["mode"] != "auto":
+            return f"exposure: {d['mode']}"
+        if "spread" not in d:
+            return "exposure: auto, decided at {:.0f} % of the run".format(100 * self.cfg.illum.exposure_at_frac)
+        verdict = "learned per photo" if d["learned"] else "one exposure for all photos"
+        return (f"exposure: auto -> {verdict} (the photos' gains against the render spread by "
+                f"{100 * d['spread']:.1f} % at step {d['step']}; threshold {100 * SPREAD_ON:.0f} %)")
+
     def apply_camera_blur(self, sigma: float) -> None:
         """Blur the trainer's patterns by ``sigma`` camera px (from the unblurred images), in place."""
         if self.cfg.rays.blur_via != "pattern" or sigma == self.pattern_blur:
@@ -398,6 +442,8 @@ class Trainer:
         """
         c = self.cfg
         p = self.progress()
+        if self.exposure_due is not None and p >= self.exposure_due:
+            self.decide_exposure()
         if self.blur_due and p >= self.blur_due[0]:
             self.decide_camera_blur()
         self.field.set_progress(p)
@@ -661,7 +707,8 @@ class Trainer:
                 "log_ir": self.log_ir.detach().cpu(), "log_ib": self.log_ib.detach().cpu(),
                 **({"log_gain": self.log_gain.detach().cpu()} if self.log_gain is not None else {}),
                 "optimizer": self.opt.state_dict(), "frames": self.frames, "rig": rig_state(self.rig),
-                "gen": self.gen.get_state().cpu(), "camera_blur": dict(self.blur_decision)}
+                "gen": self.gen.get_state().cpu(), "camera_blur": dict(self.blur_decision),
+                "exposure": dict(self.exposure_decision)}
 
     def save(self) -> Path:
         """Write the checkpoint atomically (temp file + rename): a crash keeps the previous one."""
@@ -685,6 +732,9 @@ class Trainer:
             self.blur_decision = dict(d)  # estimated before the checkpoint: those rounds are not redone
             self.blur_due = self.blur_due[len(d.get("rounds", [])) or 1:]
             self.apply_camera_blur(float(d["sigma"]))
+        e = st.get("exposure")
+        if isinstance(e, dict) and self.exposure_decision["mode"] == "auto" and "spread" in e:
+            self.exposure_decision, self.exposure_due = dict(e), None  # decided before the checkpoint
         self.step, self.elapsed = int(st["step"]), float(st.get("elapsed", 0.0))
         self.n_rays, self.skipped = int(st.get("n_rays", self.n_rays)), int(st.get("skipped", 0))
         self.field.set_progress(self.progress())
