@@ -110,6 +110,7 @@ def test_depth_metric_on_an_analytic_sphere():
     # known errors come out as such
     m = depth_errors(gt * 1.02, gt)
     assert m["depth_err_pct"] == pytest.approx(2.0) and m["depth_within_1pct"] == 0.0
+    assert m["depth_median_pct"] == pytest.approx(2.0)
     assert m["depth_err_mm"] == pytest.approx(1000 * 0.02 * gt[gt > 0].mean())
     holes = gt.copy()
     holes[:, :32] = np.nan
@@ -122,6 +123,11 @@ def test_depth_metric_on_an_analytic_sphere():
     p.add(gt * 1.01, gt)
     p.add(gt * 1.03, gt, select=np.zeros_like(gt, dtype=bool))
     assert p.metrics()["depth_err_pct"] == pytest.approx(1.0)
+    # the median ignores a few far-off pixels that move the mean
+    few = gt * 1.002
+    few[gt > 0] = np.where(np.arange(int((gt > 0).sum())) < 20, gt[gt > 0] * 1.5, few[gt > 0])
+    m = depth_errors(few, gt)
+    assert m["depth_median_pct"] == pytest.approx(0.2, abs=1e-6) and m["depth_err_pct"] > 0.3
 
 
 def test_view_depth_metrics_gt_mesh_and_lit_split(tmp_path):

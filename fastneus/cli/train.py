@@ -63,7 +63,7 @@ def _run(args, tag: str, default_preset: str, oneshot_frame: int | None = None) 
     _, metrics = train_scene(scene, cfg, out, device, console=con, resume=args.resume, overwrite=args.overwrite,
                              clock=clock)
     show = [k for k in ("chamfer_gt2rec_mm", "chamfer_gt2rec_filtered_mm", "visible_gt2rec_mm", "fscore",
-                        "depth_err_mm", "depth_err_pct", "depth_within_1pct", "depth_lit_err_pct",
+                        "depth_err_mm", "depth_err_pct", "depth_median_pct", "depth_within_1pct", "depth_lit_err_pct",
                         "psnr_pattern", "psnr_texture", "i_r", "i_b") if k in metrics]
     con.print("  ".join(f"{k} {metrics[k]:.4g}" for k in show))
     print_run_summary(metrics, con)

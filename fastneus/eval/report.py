@@ -100,6 +100,7 @@ def headline_rows(metrics: dict) -> list[tuple[str, str, str]]:
                 note = f"precision {_fmt(m['precision'], '%')}, recall {_fmt(m['recall'], '%')}"
         elif key == "depth_err_mm":
             parts = [f"{_fmt(m[k])} % of depth" for k in ("depth_err_pct",) if k in m]
+            parts += [f"median {_fmt(m['depth_median_pct'])} %"] if "depth_median_pct" in m else []
             parts += [f"{_fmt(m['depth_within_1pct'], '%')} of pixels within 1 %"] if "depth_within_1pct" in m else []
             parts += [f"coverage {_fmt(m['depth_coverage'], '%')}"] if "depth_coverage" in m else []
             parts += [f"{m['depth_views']} views"] if "depth_views" in m else []
