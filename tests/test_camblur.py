@@ -142,7 +142,7 @@ def test_auto_blur_recovers_a_known_blur_with_a_fixed_field(tmp_path, true_sigma
 
     tr.bank.sample = photos
     info = estimate_blur_by_render(tr, n_rays=1024)
-    assert info["rays"] == 1024 and len(info["residuals"]) == len(info["sigmas"])
+    assert 256 <= info["rays"] <= 1024 and len(info["residuals"]) == len(info["sigmas"])  # capped in samples
     assert info["sigma"] == pytest.approx(true_sigma, abs=0.12)
     assert info["fit_i_r"] == pytest.approx(0.4, abs=0.05) and info["fit_i_b"] == pytest.approx(0.1, abs=0.03)
 

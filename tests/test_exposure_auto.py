@@ -97,3 +97,25 @@ def test_auto_learns_gains_only_when_the_photos_differ(tmp_path):
 @pytest.mark.parametrize("word,mode", [("true", "on"), ("false", "off"), ("auto", "auto"), ("on", "on")])
 def test_exposure_takes_its_old_boolean_words(word, mode):
     assert load_config("cpu-quick", [f"exposure={word}"]).illum.exposure == mode
+
+
+def test_diagnostic_batches_keep_their_samples_within_the_cap(small_scene, tmp_path):
+    """The blur and exposure estimates march a fixed ray count; early in a run (a loose grid) that
+    was ~10^7 samples: rays are dropped until the samples fit a few training steps' worth."""
+    from fastneus.data import Scene
+    from fastneus.train.blurfit import march_capped
+    from fastneus.train.trainer import Trainer
+
+    from conftest import SMALL_RUN
+
+    tr = Trainer(Scene.load(small_scene), load_config("cpu-quick", SMALL_RUN + ["threads=1"]), tmp_path / "r", "cpu")
+    gen = torch.Generator().manual_seed(0)
+    batch = tr.rig.rays(tr.bank.sample(512, gen))
+    full, smp = march_capped(tr, batch, max_samples=10 ** 9)
+    assert full["origins"].shape[0] == 512 and smp["n_samples"] > 2000
+    cut, smp2 = march_capped(tr, batch, max_samples=smp["n_samples"] // 4)
+    n = cut["origins"].shape[0]
+    assert 64 <= n < 512 and smp2["n_samples"] <= smp["n_samples"] // 4
+    assert all(v.shape[0] == n for k, v in cut.items() if torch.is_tensor(v) and v.dim() > 0 and k != "fidx") \
+        and cut["fidx"].shape[0] == n
+    assert torch.equal(cut["origins"], batch["origins"][:n])

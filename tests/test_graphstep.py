@@ -186,3 +186,34 @@ def test_graphs_make_room_drops_the_least_recent_while_memory_is_short(monkeypat
     monkeypatch.setattr(torch.cuda, "empty_cache", lambda: None)
     g._make_room()
     assert list(g.cache) == ["c", "d"] and g.evicted == 2
+
+
+def test_graphs_released_at_the_end_of_training(monkeypatch):
+    """The end of a fit drops every captured graph and hands its pool back (a second scene in
+    the same process found the GPU full otherwise); the counts stay for the summary."""
+    import collections
+
+    from fastneus.train import graphstep
+
+    g = object.__new__(graphstep.StepGraphs)
+    g.cache, g.device = collections.OrderedDict((k, object()) for k in "ab"), "cpu"
+    g.captured, g.replayed, g.eager, g.evicted = 2, 10, 3, 0
+    calls = []
+    monkeypatch.setattr(torch.cuda, "synchronize", lambda d=None: calls.append("sync"))
+    monkeypatch.setattr(torch.cuda, "empty_cache", lambda: calls.append("empty"))
+    g.release()
+    assert not g.cache and calls == ["sync", "empty"]
+    assert g.summary() == {"graphs": 0, "captured": 2, "replayed": 10, "eager": 3, "evicted": 0}
+    g.release()  # nothing cached: nothing to hand back
+    assert calls == ["sync", "empty"]
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="CUDA graphs need a CUDA device")
+def test_a_finished_fit_holds_no_graph_memory(tmp_path):
+    from fastneus.train.trainer import Trainer
+
+    scene = Scene.load(scene_on(None, tmp_path, "cuda"))
+    cfg = load_config("fewview", SMALL_RUN + ["steps=40", "camera_blur=0"])
+    tr = Trainer(scene, cfg, tmp_path / "r", "cuda")
+    tr.fit(final_save=False)
+    assert tr.graphs is not None and tr.graphs.captured >= 1 and not tr.graphs.cache

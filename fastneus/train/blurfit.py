@@ -8,6 +8,7 @@ come in closed form (:func:`fit_illumination`) and the candidates compare by the
 from __future__ import annotations
 
 import numpy as np
+import torch
 
 AUTO_SIGMAS = (0.0, 0.25, 0.5, 0.75, 1.0, 1.5)  # candidate blurs (camera px) tried by camera_blur=auto
 AUTO_RAYS = 4096  # training rays rendered per candidate (CPU: ~4 s a round on 2 cores)
@@ -98,6 +99,33 @@ class _FieldOnce:
         return getattr(self._field, name)
 
 
+def march_capped(tr, batch: dict, max_samples: int | None = None) -> tuple[dict, dict]:
+    """March a no-gradient batch of training rays, keeping its sample count within a few
+    training steps' worth: rays are dropped (from the end) until the samples fit.
+
+    A diagnostic batch is drawn at a fixed ray count while the training steps adapt theirs to
+    ``rays.target_samples``; early in a run, when the occupancy grid is still loose, 16384 rays
+    marched to ~10^7 samples (a 31-GB allocation on the H100).
+
+    Args:
+        tr: the trainer (grid, config). batch: :meth:`RayBank.sample` dict after the rig.
+        max_samples: the cap (None: 4 x ``rays.target_samples``).
+    Returns:
+        (batch, samples): the batch, cut to the rays marched, and :func:`march_samples`' dict.
+    """
+    from fastneus.field.renderer import march_samples
+
+    cfg = tr.cfg
+    cap = 4 * int(cfg.rays.target_samples) if max_samples is None else int(max_samples)
+    while True:
+        smp = march_samples(tr.grid.bits, tr.grid.resolution, batch["origins"], batch["dirs"], cfg, jitter=False)
+        n = int(batch["origins"].shape[0])
+        if smp["n_samples"] <= cap or n <= 64:
+            return batch, smp
+        keep = max(64, int(n * 0.9 * cap / smp["n_samples"]))
+        batch = {k: (v[:keep] if torch.is_tensor(v) and v.dim() > 0 and v.shape[0] == n else v) for k, v in batch.items()}
+
+
 def estimate_blur_by_render(tr, sigmas=AUTO_SIGMAS, n_rays: int | None = None) -> dict:
     """``camera_blur=auto``: the blur whose blurred patterns best explain the photos, by rendering.
 
@@ -124,9 +152,7 @@ def estimate_blur_by_render(tr, sigmas=AUTO_SIGMAS, n_rays: int | None = None) -
     import dataclasses
     import time
 
-    import torch
-
-    from fastneus.field.renderer import march_samples, shade_samples
+    from fastneus.field.renderer import shade_samples
     from fastneus.train import losses
     from fastneus.train.rays import build_projection
 
@@ -139,7 +165,7 @@ def estimate_blur_by_render(tr, sigmas=AUTO_SIGMAS, n_rays: int | None = None) -
     info = {"sigma": 0.0, "sigmas": [float(s) for s in sigmas], "residuals": [], "rays": 0}
     with torch.no_grad():
         batch = tr.rig.rays(tr.bank.sample(n_rays, gen, bright_fraction=max(0.5, cfg.rays.bright_fraction)))
-        smp = march_samples(tr.grid.bits, tr.grid.resolution, batch["origins"], batch["dirs"], cfg, jitter=False)
+        batch, smp = march_capped(tr, batch)
         if smp["n_samples"] == 0 or not tr.proj.has_pattern:
             info["seconds"] = round(time.perf_counter() - t_start, 3)
             return info

@@ -73,7 +73,8 @@ def estimate_exposure(tr, n_rays: int | None = None) -> dict:
 
     import torch
 
-    from fastneus.field.renderer import march_samples, shade_samples
+    from fastneus.field.renderer import shade_samples
+    from fastneus.train.blurfit import march_capped
 
     t0 = time.perf_counter()
     cfg, dev = tr.cfg, tr.device
@@ -83,7 +84,7 @@ def estimate_exposure(tr, n_rays: int | None = None) -> dict:
     n_frames = len(tr.frames)
     with torch.no_grad():
         batch = tr.rig.rays(tr.bank.sample(n_rays, gen, bright_fraction=0.0))
-        smp = march_samples(tr.grid.bits, tr.grid.resolution, batch["origins"], batch["dirs"], cfg, jitter=False)
+        batch, smp = march_capped(tr, batch)
         if smp["n_samples"] == 0:
             return {"spread": 0.0, "log_gains": [0.0] * n_frames, "rays": 0,
                     "seconds": round(time.perf_counter() - t0, 3)}

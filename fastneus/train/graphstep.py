@@ -193,6 +193,18 @@ class StepGraphs:
             self.evicted += 1
             torch.cuda.empty_cache()
 
+    def release(self) -> None:
+        """Drop every captured graph and give its memory pool back (the end of training: the
+        export runs eagerly, and a later fit captures again). Without it the pools (~9 GB per
+        graph at 2^18 samples) outlived the run until Python's cycle collector freed the trainer,
+        so a second scene trained in the same process (the Python API in a loop, quality.py)
+        found the GPU full: the H100 ran out of memory in the third 10-s run."""
+        if not self.cache:
+            return
+        self.cache.clear()
+        torch.cuda.synchronize(self.device)
+        torch.cuda.empty_cache()
+
     def summary(self) -> dict:
         return {"graphs": len(self.cache), "captured": self.captured, "replayed": self.replayed, "eager": self.eager,
                 "evicted": self.evicted}

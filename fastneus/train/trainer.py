@@ -666,6 +666,7 @@ class Trainer:
             if self.console is not None:
                 self.console.print(f"CUDA graphs: {g['replayed']} steps replayed, {g['captured']} captured, "
                                    f"{g['eager']} eager{'' if self.graphs.enabled else ' (capture failed: off)'}")
+            self.graphs.release()
         clock = self.clock
         if clock is not None:
             clock.add("kernels", t_kernels)
