@@ -80,6 +80,35 @@ def run_cell(scene, device: str, budget: float, masks: str, extra: list[str], ou
     return row
 
 
+CELL_MARK = "QUALITY-CELL "  # the line a --cell child prints its row on
+
+
+def run_one_cell(device: str, cell: dict) -> None:
+    """The --cell child: load the (cached) scene, run the cell, print its row after :data:`CELL_MARK`."""
+    from fastneus.data import Scene
+
+    r = run_cell(Scene.load(Path(cell["scene"])), device, float(cell["budget"]), cell["masks"], list(cell["ov"]),
+                 Path(cell["run"]))
+    print(CELL_MARK + json.dumps(r), flush=True)
+
+
+def run_cell_isolated(scene, device: str, budget: float, masks: str, extra: list[str], out: Path) -> dict | None:
+    """:func:`run_cell` in a child process (a fresh CUDA context per cell). Returns its row, or None
+    (the child's last lines printed) when it failed."""
+    import subprocess
+    import sys
+
+    cell = {"scene": str(scene.root), "budget": budget, "masks": masks, "ov": extra, "run": str(out)}
+    p = subprocess.run([sys.executable, str(Path(__file__).resolve()), "--device", device, "--cell", json.dumps(cell)],
+                       capture_output=True, text=True)
+    rows = [line[len(CELL_MARK):] for line in p.stdout.splitlines() if line.startswith(CELL_MARK)]
+    if p.returncode != 0 or not rows:
+        tail = (p.stderr or p.stdout).strip().splitlines()[-3:]
+        print(f"cell {out.name} failed (exit {p.returncode}): " + " | ".join(tail), flush=True)
+        return None
+    return json.loads(rows[-1])
+
+
 def summarise(rows: list[dict], budgets: list[float]) -> tuple[str, dict]:
     """Markdown tables (one per metric group) and a dict of the target checks."""
     for r in rows:
@@ -146,10 +175,18 @@ def main() -> None:
     ap.add_argument("--report-from", default=None, help="only tabulate these JSONL files (comma-separated)")
     ap.add_argument("--no-md", action="store_true", help="do not update docs/benchmarks/quality-matrix.md")
     ap.add_argument("--variants", default=None, help='named override sets: "name:k=v k=v;name2:k=v"')
+    ap.add_argument("--isolate", choices=("auto", "on", "off"), default="auto",
+                    help="each cell in its own process (auto: on a GPU, where one process training scene after "
+                         "scene once ran out of memory; docs/benchmarks/quality-matrix-gpu-capture-axis.md)")
+    ap.add_argument("--cell", default=None, help=argparse.SUPPRESS)  # internal: run one cell, print its row
     ap.add_argument("overrides", nargs="*", help="key=value applied to every cell (tuning only)")
     args = ap.parse_args()
+    if args.cell:
+        run_one_cell(args.device, json.loads(args.cell))
+        return
 
     gpu = args.device.startswith("cuda")
+    isolate = args.isolate == "on" or (args.isolate == "auto" and gpu)
     kind = "cuda" if gpu else "cpu"
     tag = args.tag or kind
     budgets = [float(b) for b in (args.budgets or ("5,10,20,60" if gpu else "30,60,120")).split(",")]
@@ -188,12 +225,19 @@ def main() -> None:
                                 cname = "" if cap == "ideal" else f"-{cap}"
                                 run = out / "runs" / f"{tag}-{vname}-{shape}-{illum}{cname}-m{masks}-{b:g}s"
                                 ov = list(args.overrides) + vov
-                                r = run_cell(scene, args.device, b, masks, ov, run)
+                                if isolate:
+                                    r = run_cell_isolated(scene, args.device, b, masks, ov, run)
+                                    if r is None:
+                                        continue
+                                else:
+                                    r = run_cell(scene, args.device, b, masks, ov, run)
                                 r.update(variant=vname, shape=shape, illum=illum, capture=cap, masks=masks, budget=b,
                                          overrides=ov)
                                 print(json.dumps(r), flush=True)
                                 with open(jsonl, "a") as f:
                                     f.write(json.dumps(r) + "\n")
+        if not jsonl.is_file():
+            raise SystemExit(f"{jsonl}: no cell finished")
         rows = [json.loads(line) for line in jsonl.read_text().splitlines() if line.strip()]
     budgets_seen = sorted({r["budget"] for r in rows})
     text, checks = summarise(rows, budgets_seen)
