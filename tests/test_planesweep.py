@@ -15,9 +15,11 @@ from fastneus.synth.render import synthesize
 
 @pytest.fixture(scope="module")
 def colorline_scene(tmp_path_factory):
-    return synthesize(tmp_path_factory.mktemp("cl") / "s", shape="toy", views=2, size=(128, 128), pattern="colorline",
-                      seed=int(np.random.default_rng().integers(1 << 20)), baselines=(0.6,), progress=False,
-                      contact_sheet=False)
+    seed = int(np.random.default_rng().integers(1 << 20))
+    sc = synthesize(tmp_path_factory.mktemp("cl") / "s", shape="toy", views=2, size=(128, 128), pattern="colorline",
+                    seed=seed, baselines=(0.6,), progress=False, contact_sheet=False)
+    sc.test_seed = seed  # named in failures: a fresh scene per run, so a rare failure must be reproducible
+    return sc
 
 
 def test_sweep_recovers_depth_where_it_accepts(colorline_scene):
@@ -94,9 +96,11 @@ def test_wide_photos_are_swept_downsampled(colorline_scene):
     ok = np.isfinite(d) & fg
     # few: 96 px resolve few stripes and the silhouette ring / edge skipping takes a larger share
     # (17-332 points over 30 seeds), but what is kept is right
-    assert ok.sum() >= 10
+    assert ok.sum() >= 10, f"scene seed {sc.test_seed}"
     err = np.abs(d[ok] - near[ok]) / near[ok]
-    assert np.median(err) < 0.01, np.median(err)
+    # one run in this repository's history failed at a 14 % median (seed not recorded then; 360
+    # seeds tried afterwards all pass the median)
+    assert np.median(err) < 0.01, (np.median(err), f"scene seed {sc.test_seed}")
 
 
 def test_refinement_goes_below_the_coarse_step(colorline_scene):
