@@ -77,6 +77,11 @@ def test_auto_learns_gains_only_when_the_photos_differ(tmp_path):
     tr2 = Trainer(varied, cfg, tmp_path / "b", "cpu")
     tr2.load_state(tr.state())
     assert tr2.exposure_due is None and tr2.exposure_decision["learned"]
+    st = tr.state()
+    st["exposure"] = {"mode": "auto", "learned": "yes", "spread": "x"}  # malformed: decided again
+    tr3 = Trainer(varied, cfg, tmp_path / "b3", "cpu")
+    tr3.load_state(st)
+    assert tr3.exposure_due is not None and "spread" not in tr3.exposure_decision
 
     # one exposure: decided off; the gains stay exactly 1 and are never stepped (a gain of 1 leaves
     # every rendered colour as it is, so the run is the run without them)

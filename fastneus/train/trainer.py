@@ -733,9 +733,10 @@ class Trainer:
             self.blur_decision = dict(d)  # estimated before the checkpoint: those rounds are not redone
             self.blur_due = self.blur_due[len(d.get("rounds", [])) or 1:]
             self.apply_camera_blur(float(d["sigma"]))
-        e = st.get("exposure")
-        if isinstance(e, dict) and self.exposure_decision["mode"] == "auto" and "spread" in e:
-            self.exposure_decision, self.exposure_due = dict(e), None  # decided before the checkpoint
+        e = st.get("exposure")  # decided before the checkpoint (a malformed entry: decided again)
+        if (isinstance(e, dict) and self.exposure_decision["mode"] == "auto" and isinstance(e.get("learned"), bool)
+                and isinstance(e.get("spread"), (int, float)) and isinstance(e.get("step"), int)):
+            self.exposure_decision, self.exposure_due = dict(e), None
         self.step, self.elapsed = int(st["step"]), float(st.get("elapsed", 0.0))
         self.n_rays, self.skipped = int(st.get("n_rays", self.n_rays)), int(st.get("skipped", 0))
         self.field.set_progress(self.progress())
