@@ -233,3 +233,23 @@ def test_missing_browser_skips_only_where_not_required(monkeypatch, tmp_path):
     monkeypatch.delenv("FASTNEUS_REQUIRE_BROWSER")
     with pytest.raises(pytest.skip.Exception, match="apt-get install chromium"):
         test_browser_draws_the_mesh(None, tmp_path)
+
+
+def test_decisions_from_the_data_are_shown(report, tmp_path):
+    """The run's automatic choices (run.json) are listed: masks, background prior, response, the
+    camera blur and the exposure; a damaged run.json only drops the section."""
+    import json
+
+    from fastneus.eval.report import decisions_html
+
+    run, text, page = report
+    rows = " ".join(page.text_in.get("table.decisions", []))
+    for what in ("masks", "photo response", "camera blur", "exposure"):
+        assert what in rows, what
+    info = json.loads((run / "run.json").read_text())
+    assert info["exposure"]["mode"] == "auto" and info["camera_blur"]["mode"] == "auto"
+    (tmp_path / "run.json").write_text('{"camera_blur": {"mode": "auto", "sigma": "<b>x</b>"}, "masks": "<i>m</i>"}')
+    html_ = decisions_html(tmp_path)
+    assert "<i>" not in html_ and "&lt;i&gt;m&lt;/i&gt;" in html_ and "camera blur" not in html_
+    (tmp_path / "run.json").write_text("not json")
+    assert decisions_html(tmp_path) == ""

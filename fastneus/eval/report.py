@@ -165,6 +165,41 @@ def timing_html(tm: dict) -> str:
             f'<table class="timing"><tbody>{"".join(rows)}{marks}</tbody></table>')
 
 
+def decisions_html(run: Path) -> str:
+    """What the run decided from the data (run.json): masks, the background prior, the photos'
+    response, the camera blur and the per-photo exposure, each as the line the run printed."""
+    import json
+
+    try:
+        info = json.loads((Path(run) / "run.json").read_text())
+    except (OSError, ValueError):
+        return ""
+    if not isinstance(info, dict):
+        return ""
+    rows = []
+    for key, name in (("masks", "masks"), ("background_prior", "background prior"), ("response", "photo response")):
+        if isinstance(info.get(key), str):
+            rows.append((name, info[key]))
+    blur = info.get("camera_blur")
+    if isinstance(blur, dict):
+        if blur.get("mode") == "set":
+            rows.append(("camera blur", f"{blur.get('sigma')} px (set)"))
+        elif isinstance(blur.get("sigma"), (int, float)):
+            path = " -> ".join(str(r.get("sigma")) for r in blur.get("rounds", []) if isinstance(r, dict))
+            rows.append(("camera blur", f"auto: {path or blur['sigma']} px (estimated during the run)"))
+    exp = info.get("exposure")
+    if isinstance(exp, dict) and isinstance(exp.get("mode"), str):
+        if exp["mode"] == "auto" and isinstance(exp.get("spread"), (int, float)):
+            verdict = "learned per photo" if exp.get("learned") is True else "one exposure for all photos"
+            rows.append(("exposure", f"auto: {verdict} (gains spread {100 * exp['spread']:.1f} % at step {exp.get('step')})"))
+        else:
+            rows.append(("exposure", exp["mode"]))
+    if not rows:
+        return ""
+    body = "".join(f"<tr><td>{html.escape(k)}</td><td>{html.escape(v)}</td></tr>" for k, v in rows)
+    return f'<h2 id="decisions">Decisions from the data</h2><table class="decisions"><tr><th>what</th><th>decided</th></tr>{body}</table>'
+
+
 def config_html(config: dict) -> str:
     """The resolved config with the values that differ from its preset (else the defaults) marked."""
     from fastneus.config import Config, load_config, preset_names
@@ -364,6 +399,7 @@ def write_report(run: Path, metrics: dict, render_paths: dict[int, dict[str, str
 {views_html(run, render_paths, renders, scene)}
 <h2>Training</h2><div class="row charts">{chart_html}</div>
 {timing_html(tm)}
+{decisions_html(run)}
 {config_html(config)}
 <h2>Files</h2><p><a href="mesh.ply">mesh.ply</a> (full resolution, world units) · <a href="metrics.json">metrics.json</a> ·
 <a href="illumination.json">illumination.json</a> · <a href="log.jsonl">log.jsonl</a> · <a href="renders/">renders/</a></p>
