@@ -106,9 +106,6 @@ class RaysSection:
     blur_refine_frac: float = knob(0.5, "camera_blur=auto: fraction of the run at which it is estimated again, "
                                    "on the field trained with the first estimate (a field trained on sharp "
                                    "patterns favours a sharper blur); 0 or <= blur_at_frac = once", **FRAC)
-    blur_final_frac: float = knob(0.0, "camera_blur=auto: fraction of the run at which it is estimated a third "
-                                  "time (each round moves toward the fixed point on a blurred capture); "
-                                  "0 or <= blur_refine_frac = no third round", **FRAC)
     blur_via: str = knob("pattern", "how camera_blur enters the model: pattern = the projected light only, each "
                          "pattern image blurred once by it in projector pixels (no cost per step); rays = each "
                          "training pixel is blur_rays rays spread by it, their colours averaged",
@@ -236,7 +233,7 @@ class IllumSection:
                          "files' tags, else srgb) | linear | srgb | gamma=G")
     exposure: str = knob("auto", "learn a gain per photo (auto-exposure; the first training frame's is 1): auto "
                          "(at exposure_at_frac of the run, each photo's gain is fit against the render; learned from "
-                         "then on when they spread by > 3 %: on fixed-exposure captures learning them cost "
+                         "then on when they spread by > 4 %: on fixed-exposure captures learning them cost "
                          "accuracy) | on | off", choices=("auto", "on", "off"), model=True)
     exposure_at_frac: float = knob(0.2, "exposure=auto: fraction of the run at which it is decided", **FRAC)
     lr_exposure: float = knob(1e-2, "learning rate of the per-photo log-gains", lo=0.0)

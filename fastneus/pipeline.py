@@ -319,14 +319,14 @@ def _train_and_finish(trainer, scene, cfg: Config, out: Path, device: str, conso
     atomic_write_json(out / "run.json", {"scene": str(scene.root), "device": str(device), "preset": cfg.run.preset,
                                          "threads": trainer.threads, "masks": trainer.masks_note,
                                          "background_prior": trainer.bg_note, "response": trainer.response_note,
-                                         "camera_blur": trainer.blur_decision,
-                                         "exposure": trainer.exposure_decision, **provenance()})
+                                         "camera_blur": trainer.blur_decision, "camera_blur_note": trainer.blur_note(),
+                                         "exposure": trainer.exposure_decision,
+                                         "exposure_note": trainer.exposure_note(), **provenance()})
     with stop_on_signal(trainer, out):
         last = trainer.fit(final_save=not finish)  # finish_run saves it right after mesh.ply
-    if trainer.blur_decision.get("mode") == "auto":  # decided during the run (camera_blur=auto)
-        _update_run_json(out, {"camera_blur": trainer.blur_decision})
-    if trainer.exposure_decision.get("mode") == "auto":  # decided during the run (exposure=auto)
-        _update_run_json(out, {"exposure": trainer.exposure_decision})
+    # decided during the run (camera_blur=auto, exposure=auto): the decisions and their printed lines
+    _update_run_json(out, {"camera_blur": trainer.blur_decision, "camera_blur_note": trainer.blur_note(),
+                           "exposure": trainer.exposure_decision, "exposure_note": trainer.exposure_note()})
     if console is not None and last:
         console.print(f"trained {trainer.step} steps in {trainer.elapsed:.1f}s: loss {last['loss']:.4f}, "
                       f"PSNR {last['psnr']:.2f} dB, i_r {last['i_r']:.4f}, i_b {last['i_b']:.4f}")

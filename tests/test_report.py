@@ -248,7 +248,9 @@ def test_decisions_from_the_data_are_shown(report, tmp_path):
         assert what in rows, what
     info = json.loads((run / "run.json").read_text())
     assert info["exposure"]["mode"] == "auto" and info["camera_blur"]["mode"] == "auto"
-    (tmp_path / "run.json").write_text('{"camera_blur": {"mode": "auto", "sigma": "<b>x</b>"}, "masks": "<i>m</i>"}')
+    assert info["exposure_note"].startswith("exposure: auto -> ") and "camera blur: auto -> " in info["camera_blur_note"]
+    assert info["exposure_note"] in rows and info["camera_blur_note"] in rows  # the lines the run printed
+    (tmp_path / "run.json").write_text('{"camera_blur_note": {"not": "a line"}, "masks": "<i>m</i>"}')
     html_ = decisions_html(tmp_path)
     assert "<i>" not in html_ and "&lt;i&gt;m&lt;/i&gt;" in html_ and "camera blur" not in html_
     (tmp_path / "run.json").write_text("not json")

@@ -166,8 +166,8 @@ def timing_html(tm: dict) -> str:
 
 
 def decisions_html(run: Path) -> str:
-    """What the run decided from the data (run.json): masks, the background prior, the photos'
-    response, the camera blur and the per-photo exposure, each as the line the run printed."""
+    """What the run decided from the data: the lines it printed and saved in run.json (masks, the
+    background prior, the photos' response, the camera blur, the per-photo exposure)."""
     import json
 
     try:
@@ -176,24 +176,9 @@ def decisions_html(run: Path) -> str:
         return ""
     if not isinstance(info, dict):
         return ""
-    rows = []
-    for key, name in (("masks", "masks"), ("background_prior", "background prior"), ("response", "photo response")):
-        if isinstance(info.get(key), str):
-            rows.append((name, info[key]))
-    blur = info.get("camera_blur")
-    if isinstance(blur, dict):
-        if blur.get("mode") == "set":
-            rows.append(("camera blur", f"{blur.get('sigma')} px (set)"))
-        elif isinstance(blur.get("sigma"), (int, float)):
-            path = " -> ".join(str(r.get("sigma")) for r in blur.get("rounds", []) if isinstance(r, dict))
-            rows.append(("camera blur", f"auto: {path or blur['sigma']} px (estimated during the run)"))
-    exp = info.get("exposure")
-    if isinstance(exp, dict) and isinstance(exp.get("mode"), str):
-        if exp["mode"] == "auto" and isinstance(exp.get("spread"), (int, float)):
-            verdict = "learned per photo" if exp.get("learned") is True else "one exposure for all photos"
-            rows.append(("exposure", f"auto: {verdict} (gains spread {100 * exp['spread']:.1f} % at step {exp.get('step')})"))
-        else:
-            rows.append(("exposure", exp["mode"]))
+    keys = (("masks", "masks"), ("background_prior", "background prior"), ("response", "photo response"),
+            ("camera_blur_note", "camera blur"), ("exposure_note", "exposure"))
+    rows = [(name, info[key]) for key, name in keys if isinstance(info.get(key), str)]
     if not rows:
         return ""
     body = "".join(f"<tr><td>{html.escape(k)}</td><td>{html.escape(v)}</td></tr>" for k, v in rows)

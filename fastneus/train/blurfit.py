@@ -126,7 +126,26 @@ def march_capped(tr, batch: dict, max_samples: int | None = None) -> tuple[dict,
         batch = {k: (v[:keep] if torch.is_tensor(v) and v.dim() > 0 and v.shape[0] == n else v) for k, v in batch.items()}
 
 
-def estimate_blur_by_render(tr, sigmas=AUTO_SIGMAS, n_rays: int | None = None) -> dict:
+def diagnostic_batch(tr, n_rays: int, salt: int, bright_fraction: float = 0.0) -> tuple[dict, dict]:
+    """A no-gradient batch of training rays for an in-run estimate, marched (:func:`march_capped`).
+
+    Drawn with a generator of its own (seeded by the run's seed and ``salt``), so the run's random
+    stream is untouched; at most 16 training steps' rays (``rays.max_rays``), so a small run's
+    estimate stays small.
+
+    Args:
+        tr: the trainer. n_rays: rays wanted. salt: tells one estimate's stream from another's.
+        bright_fraction: share of rays drawn by pixel brightness.
+    Returns:
+        (batch, samples) as :func:`march_capped`.
+    """
+    gen = torch.Generator(device=tr.device)
+    gen.manual_seed(int(tr.cfg.run.seed) * 7919 + salt)
+    n = min(int(n_rays), 16 * tr.cfg.rays.max_rays)
+    return march_capped(tr, tr.rig.rays(tr.bank.sample(n, gen, bright_fraction=bright_fraction)))
+
+
+def estimate_blur_by_render(tr, sigmas=AUTO_SIGMAS, n_rays: int = AUTO_RAYS) -> dict:
     """``camera_blur=auto``: the blur whose blurred patterns best explain the photos, by rendering.
 
     With no gradient, one batch of training rays (drawn with a generator of its own, so the run's
@@ -143,7 +162,7 @@ def estimate_blur_by_render(tr, sigmas=AUTO_SIGMAS, n_rays: int | None = None) -
     Args:
         tr: the :class:`fastneus.train.trainer.Trainer` (its field, grid, rig, bank, exposure gains).
         sigmas: the candidate blurs, increasing, starting at 0.
-        n_rays: rays in the batch (None: :data:`AUTO_RAYS`, at most 16 x ``rays.max_rays``).
+        n_rays: rays in the batch (:func:`diagnostic_batch`: at most 16 x ``rays.max_rays``).
     Returns:
         {"sigma", "fit_i_r", "fit_i_b" (the closed-form fit at sigma: low while the field is not
         aligned, a diagnostic), "sigmas", "residuals", "rays", "seconds"}; sigma
@@ -158,14 +177,9 @@ def estimate_blur_by_render(tr, sigmas=AUTO_SIGMAS, n_rays: int | None = None) -
 
     t_start = time.perf_counter()
     cfg, dev = tr.cfg, tr.device
-    if n_rays is None:  # at most 16 steps' rays: a small run's estimate stays small
-        n_rays = min(AUTO_RAYS, 16 * cfg.rays.max_rays)
-    gen = torch.Generator(device=dev)
-    gen.manual_seed(int(cfg.run.seed) * 7919 + 17)
     info = {"sigma": 0.0, "sigmas": [float(s) for s in sigmas], "residuals": [], "rays": 0}
     with torch.no_grad():
-        batch = tr.rig.rays(tr.bank.sample(n_rays, gen, bright_fraction=max(0.5, cfg.rays.bright_fraction)))
-        batch, smp = march_capped(tr, batch)
+        batch, smp = diagnostic_batch(tr, n_rays, 17, bright_fraction=max(0.5, cfg.rays.bright_fraction))
         if smp["n_samples"] == 0 or not tr.proj.has_pattern:
             info["seconds"] = round(time.perf_counter() - t_start, 3)
             return info

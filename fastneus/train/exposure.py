@@ -58,13 +58,13 @@ def gain_spread(log_gains: np.ndarray, counts: np.ndarray) -> float:
     return float(np.std(log_gains[ok])) if ok.sum() >= 2 else 0.0
 
 
-def estimate_exposure(tr, n_rays: int | None = None) -> dict:
+def estimate_exposure(tr, n_rays: int = AUTO_RAYS) -> dict:
     """Fit every training photo's gain against the trainer's current render (no gradient).
 
     Args:
         tr: the :class:`fastneus.train.trainer.Trainer` (field, grid, rig, bank, illumination).
-        n_rays: rays in the batch, uniform over the photos' pixels (None: :data:`AUTO_RAYS`, at most
-            16 x ``rays.max_rays``: a small run's decision stays small).
+        n_rays: rays in the batch, uniform over the photos' pixels (:func:`fastneus.train.blurfit.
+            diagnostic_batch`: at most 16 x ``rays.max_rays``).
     Returns:
         {"spread": std of the log-gains, "log_gains": [F] relative to the first photo, "rays",
         "seconds"}.
@@ -74,17 +74,13 @@ def estimate_exposure(tr, n_rays: int | None = None) -> dict:
     import torch
 
     from fastneus.field.renderer import shade_samples
-    from fastneus.train.blurfit import march_capped
+    from fastneus.train.blurfit import diagnostic_batch
 
     t0 = time.perf_counter()
-    cfg, dev = tr.cfg, tr.device
-    n_rays = min(AUTO_RAYS, 16 * cfg.rays.max_rays) if n_rays is None else n_rays
-    gen = torch.Generator(device=dev)
-    gen.manual_seed(int(cfg.run.seed) * 7919 + 29)
+    cfg = tr.cfg
     n_frames = len(tr.frames)
     with torch.no_grad():
-        batch = tr.rig.rays(tr.bank.sample(n_rays, gen, bright_fraction=0.0))
-        batch, smp = march_capped(tr, batch)
+        batch, smp = diagnostic_batch(tr, n_rays, 29)
         if smp["n_samples"] == 0:
             return {"spread": 0.0, "log_gains": [0.0] * n_frames, "rays": 0,
                     "seconds": round(time.perf_counter() - t0, 3)}

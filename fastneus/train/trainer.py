@@ -175,10 +175,8 @@ class Trainer:
         # auto: none until it is estimated at blur_at_frac (and again at blur_refine_frac) of the run
         # (decide_camera_blur)
         blur = camera_blur_sigma(cfg.rays.camera_blur)
-        self.blur_due: list[float] = []  # the fractions of the run still to estimate at, increasing
-        for f in (cfg.rays.blur_at_frac, cfg.rays.blur_refine_frac, cfg.rays.blur_final_frac) if blur is None else ():
-            if not self.blur_due or f > self.blur_due[-1]:
-                self.blur_due.append(f)
+        fr = cfg.rays.blur_at_frac, cfg.rays.blur_refine_frac
+        self.blur_due: list[float] = ([fr[0]] + ([fr[1]] if fr[1] > fr[0] else [])) if blur is None else []
         self.blur_decision: dict = {"mode": "auto", "at_frac": list(self.blur_due), "sigma": None, "rounds": []} \
             if blur is None else {"mode": "set", "sigma": blur}
         self.camera_blur = 0.0 if blur is None else blur  # the blur in use, camera px
