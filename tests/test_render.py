@@ -182,13 +182,19 @@ def _grads(out, ups, inp, names=DIFF):
     return {k: torch.zeros_like(inp[k]) if v is None else v for k, v in zip(names, g)}
 
 
+CANCEL_FLOOR = 1e-8  # absolute: float32 sigmoid differences near 1 resolve ~1e-7, times the factors after them
+
+
 def _close_to_ref(a, ref, a32, tol, what):
-    """|a - ref| <= tol * max|ref| + 4 * |a32 - ref|_max.
+    """|a - ref| <= tol * max|ref| + 4 * |a32 - ref|_max + :data:`CANCEL_FLOOR`.
 
     ``ref`` is the float64 twin on the same (float32) inputs and ``a32`` the float32 twin: the
     NeuS alpha is ill-conditioned in float32 far outside the surface (sigmoid(prev) -
     sigmoid(next) cancels), so the Warp op must match the exact maths to ``tol`` up to the
-    rounding noise that any float32 implementation of the formula shows.
+    rounding noise that any float32 implementation of the formula shows. The float32 twin does
+    not always show that noise where the op does: seed 3172523716 (one sample at sdf 0.21,
+    inv_s 49, opacity 1e-5) gave a grad sdf of -9.658e-8 against the exact -9.593e-8 (the twin
+    -9.5926e-8), a 6.5e-10 difference, hence the absolute floor.
     """
     a, ref, a32 = (x.detach().double().cpu() for x in (a, ref, a32))
     assert a.shape == ref.shape, what
@@ -197,7 +203,8 @@ def _close_to_ref(a, ref, a32, tol, what):
     scale = max(ref.abs().max().item(), 1e-6)
     noise = (a32 - ref).abs().max().item()
     err = (a - ref).abs().max().item()
-    assert err <= tol * scale + 4 * noise, f"{what}: max err {err:.3g} > {tol} * {scale:.3g} + 4 * {noise:.3g}"
+    assert err <= tol * scale + 4 * noise + CANCEL_FLOOR, \
+        f"{what}: max err {err:.3g} > {tol} * {scale:.3g} + 4 * {noise:.3g} + {CANCEL_FLOOR:g}"
 
 
 @pytest.mark.parametrize("device", DEVICES)
