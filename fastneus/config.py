@@ -173,7 +173,7 @@ class OptimSection:
     lr_variance: float = knob(5e-3, "learning rate of the NeuS variance (0 = frozen)", lo=0.0)
     lr_illum: float = knob(3e-2, "learning rate of log(i_r), log(i_b) (0 = frozen)", lo=0.0)
     adam_eps: float = knob(1e-15, "Adam epsilon", lo=0.0, lo_open=True)
-    warmup_frac: float = knob(0.03, "linear lr warm-up (fraction of the run)", **FRAC)
+    warmup_frac: float = knob(0.03, "linear lr warm-up (fraction of the run; the geometry's starts when it unfreezes)", **FRAC)
     color_warmup_frac: float = knob(0.03, "geometry frozen while the colour net fits the brightness", **FRAC)
     decay_to: float = knob(0.05, "final lr factor (cosine decay after warm-up)", lo=0.0, hi=1.0, lo_open=True)
 

@@ -123,6 +123,15 @@ def _psnr(mse: float) -> float:
     return -10.0 * math.log10(max(mse, 1e-12))
 
 
+
+def lr_warmup(p: float, start: float, frac: float, decay: float) -> float:
+    """Learning-rate factor at progress ``p`` of a group that starts learning at ``start``: a
+    linear ramp from 0.1 to 1 over the next ``frac`` of the run, then ``decay`` (the run's
+    cosine). Before ``start`` the caller holds the group (its rate is 0)."""
+    if frac > 0 and p < start + frac:
+        return 0.1 + 0.9 * max(0.0, p - start) / frac
+    return decay
+
 class Trainer:
     """Optimises an :class:`SDFField` on a scene.
 
@@ -295,7 +304,12 @@ class Trainer:
     def _set_lr(self, p: float) -> None:
         c = self.cfg
         decay = c.optim.decay_to + (1 - c.optim.decay_to) * 0.5 * (1 + math.cos(math.pi * p))
-        f = 0.1 + 0.9 * p / c.optim.warmup_frac if p < c.optim.warmup_frac else decay
+        f = lr_warmup(p, 0.0, c.optim.warmup_frac, decay)
+        # the geometry warms up from where it unfreezes: started at the full rate, Adam's first
+        # steps (each ~lr on every table entry with a gradient) broke the surface's eikonal up
+        # (0.03 -> 0.12) and on a realistic Dark scene the run fell into an empty field when
+        # steps happened to come a little faster (perf note 19)
+        f_geo = lr_warmup(p, c.optim.color_warmup_frac, c.optim.warmup_frac, decay)
         # from a blind init (1, 1) the pattern term is several times too bright: waiting for the
         # geometry would let it carve the surface away, so fit it with the colours from the start
         # (geometry frozen meanwhile), then keep learning
@@ -312,8 +326,8 @@ class Trainer:
                 g["lr"] = g["base_lr"] * decay if on else 0.0
             elif g["name"].startswith("rig_"):  # own warm-up, then the common decay
                 g["lr"] = g["base_lr"] * decay * self.rig.lr_gate(g["name"], p)
-            elif frozen and g["name"] in ("geometry", "variance"):
-                g["lr"] = 0.0
+            elif g["name"] in ("geometry", "variance"):
+                g["lr"] = 0.0 if frozen else g["base_lr"] * f_geo
             else:
                 g["lr"] = g["base_lr"] * f
 
