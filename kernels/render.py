@@ -74,12 +74,15 @@ class PatternStore:
             if t.dtype != torch.uint8 or t.ndim != 3 or t.shape[2] != 3:
                 raise ValueError(f"pattern {i}: expected uint8 [H, W, 3], got {t.dtype} {tuple(t.shape)}")
             h, w = int(t.shape[0]), int(t.shape[1])
-            chunks.append(t.detach().to("cpu").contiguous().reshape(-1))
+            chunks.append(t.detach().contiguous().reshape(-1))
             meta.append((offset, w, h))
             offset += 3 * w * h
         if offset >= 2**31:
             raise ValueError(f"patterns hold {offset} bytes; the int32 offsets allow < 2^31")
-        buf = torch.cat(chunks) if chunks else torch.zeros(0, dtype=torch.uint8)
+        # packed where the patterns are when they all are on ``device`` (no host round trip)
+        dev = torch.device(device)
+        same = all(c.device.type == dev.type for c in chunks)
+        buf = torch.cat(chunks if same else [c.cpu() for c in chunks]) if chunks else torch.zeros(0, dtype=torch.uint8)
         self.buffer = buf.to(device)  # [sum 3*W*H] uint8
         self.meta = torch.tensor(meta, dtype=torch.int32).reshape(-1, 3).to(device)  # [NPat, 3] int32
 

@@ -54,6 +54,53 @@ def test_blur_pattern_keeps_the_light_and_widens_the_line():
     assert blur_pattern(pat, 0.0) is pat
 
 
+def _devices():
+    return ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
+
+
+@pytest.mark.parametrize("device", _devices())
+@pytest.mark.parametrize("sigma", [0.3, 0.76, 2.5])
+def test_blur_pattern_torch_twin_matches_opencv(device, sigma):
+    """The device path of the blur (the in-run estimate's candidates on a GPU) gives OpenCV's
+    values: fresh random patterns with lines, edges and a border; at most one code apart where
+    float32 sums fall on either side of a rounding tie."""
+    from fastneus.train.camblur import blur_pattern_torch
+
+    rng = np.random.default_rng()
+    seed = int(rng.integers(2**31))
+    rng = np.random.default_rng(seed)
+    pat = (rng.random((37, 53, 3)) < 0.2).astype(np.uint8) * rng.integers(0, 256, (37, 53, 3)).astype(np.uint8)
+    pat[:, 20:22] = 255
+    pat[:, -1] = 200  # light at the border: zeros outside on both paths
+    ref = blur_pattern(pat, sigma)
+    out = blur_pattern(torch.from_numpy(pat).to(device), sigma)
+    assert out.dtype == torch.uint8 and out.device.type == device and tuple(out.shape) == pat.shape
+    diff = np.abs(out.cpu().numpy().astype(int) - ref.astype(int))
+    assert diff.max() <= 1 and (diff > 0).mean() < 0.01, f"seed {seed}"
+    assert blur_pattern_torch(out, 0.0) is out
+
+
+def test_projection_from_pre_read_patterns_is_the_same(tmp_path):
+    """``build_projection(..., patterns=pattern_images(...))`` (read once, the blur estimate's
+    candidates) packs the same store as reading the scene each time."""
+    from fastneus.synth.render import synthesize
+    from fastneus.train.rays import build_projection, pattern_images
+
+    scene = synthesize(tmp_path / "s", shape="sphere", views=2, size=(64, 64), device="cpu", noise=0.0,
+                       proj_size=(128, 96), progress=False, contact_sheet=False)
+    pats = pattern_images(scene, [0, 1], "cpu")
+    assert pats and all(isinstance(v, np.ndarray) for v in pats.values())
+    for s in (0.0, 0.7):
+        a = build_projection(scene, [0, 1], "cpu", camera_blur=s)
+        b = build_projection(scene, [0, 1], "cpu", camera_blur=s, patterns=pats)
+        assert torch.equal(a.store.buffer, b.store.buffer) and torch.equal(a.store.meta, b.store.meta)
+    # tensors (the GPU's form) take the torch blur: within one code of OpenCV's
+    tens = {k: torch.from_numpy(np.ascontiguousarray(v)) for k, v in pats.items()}
+    c = build_projection(scene, [0, 1], "cpu", camera_blur=0.7, patterns=tens)
+    a = build_projection(scene, [0, 1], "cpu", camera_blur=0.7)
+    assert (c.store.buffer.int() - a.store.buffer.int()).abs().max() <= 1
+
+
 def test_projector_scale_on_the_synthetic_rig(tmp_path):
     from fastneus.synth.render import synthesize
 

@@ -173,7 +173,7 @@ def estimate_blur_by_render(tr, sigmas=AUTO_SIGMAS, n_rays: int = AUTO_RAYS) -> 
 
     from fastneus.field.renderer import shade_samples
     from fastneus.train import losses
-    from fastneus.train.rays import build_projection
+    from fastneus.train.rays import build_projection, pattern_images
 
     t_start = time.perf_counter()
     cfg, dev = tr.cfg, tr.device
@@ -204,9 +204,12 @@ def estimate_blur_by_render(tr, sigmas=AUTO_SIGMAS, n_rays: int = AUTO_RAYS) -> 
         y, c0n = y[keep].numpy(), c0[keep].numpy()
         info["rays"] = int(batch["rgb"].shape[0])
 
+        pats = pattern_images(tr.scene, tr.frames, dev)  # read once; each candidate blurs them on the device
+
         def parts(s: float) -> tuple[np.ndarray, np.ndarray]:
             """(a, b) of :func:`fit_illumination` with the patterns blurred by ``s``."""
-            cand = build_projection(tr.scene, tr.frames, dev, refraction=cfg.rig.refraction, camera_blur=s)
+            cand = build_projection(tr.scene, tr.frames, dev, refraction=cfg.rig.refraction, camera_blur=s,
+                                    patterns=pats)
             proj = tr.rig.projection(dataclasses.replace(tr.proj, store=cand.store))
             return (render(proj, 0.0, 1.0) - c0)[keep].numpy(), (render(proj, 1.0, 0.0) - c0)[keep].numpy()
 

@@ -143,8 +143,18 @@ class Projection:
         return self.lights["laser"][1] if "laser" in self.lights else None
 
 
+def pattern_images(scene, frames: list[int], device) -> dict:
+    """Pattern id -> [H, W, 3] uint8 image, every pattern ``frames`` show, read once for repeated
+    :func:`build_projection` calls (the blur estimate's candidates): numpy on the CPU (OpenCV
+    blurs it), a tensor on a GPU (blurred there)."""
+    ids = sorted({fp.pattern for i in frames for fp in scene.frames[i].projectors.values() if fp.pattern is not None})
+    if torch.device(device).type == "cpu":
+        return {p: scene.pattern_image(p) for p in ids}
+    return {p: torch.from_numpy(np.ascontiguousarray(scene.pattern_image(p))).to(device) for p in ids}
+
+
 def build_projection(scene, frames: list[int], device, refraction: bool = True,
-                     camera_blur: float = 0.0) -> Projection:
+                     camera_blur: float = 0.0, patterns: dict | None = None) -> Projection:
     """Collect every projector of ``frames`` (in scene order) into kernel-ready tensors.
 
     Args:
@@ -153,6 +163,8 @@ def build_projection(scene, frames: list[int], device, refraction: bool = True,
         camera_blur: the camera's blur (Gaussian sigma, camera pixels) applied to the projected
             light: each pattern image is blurred by it in projector pixels
             (:func:`fastneus.train.camblur.projector_scale`); 0 = the patterns as they are.
+        patterns: pattern id -> [H, W, 3] uint8 image (numpy, or a tensor on ``device``: blurred
+            there) already read (:func:`pattern_images`); others are read from the scene.
     """
     proj_ids = list(scene.projectors.keys())
     S = np.asarray(scene.normalisation(), dtype=np.float64)
@@ -182,7 +194,7 @@ def build_projection(scene, frames: list[int], device, refraction: bool = True,
             if fp.pattern not in pat_ids:
                 pat_ids.append(fp.pattern)
             pat[a, k] = pat_ids.index(fp.pattern)
-    images = [scene.pattern_image(p) for p in pat_ids]
+    images = [patterns[p] if patterns is not None and p in patterns else scene.pattern_image(p) for p in pat_ids]
     if camera_blur > 0 and pat_ids:  # the lens's blur, moved onto the patterns (fastneus.train.camblur)
         from fastneus.train.camblur import blur_pattern, projector_scale
 
