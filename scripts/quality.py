@@ -176,8 +176,9 @@ def main() -> None:
     ap.add_argument("--no-md", action="store_true", help="do not update docs/benchmarks/quality-matrix.md")
     ap.add_argument("--variants", default=None, help='named override sets: "name:k=v k=v;name2:k=v"')
     ap.add_argument("--isolate", choices=("auto", "on", "off"), default="auto",
-                    help="each cell in its own process (auto: on a GPU, where one process training scene after "
-                         "scene once ran out of memory; docs/benchmarks/quality-matrix-gpu-capture-axis.md)")
+                    help="each cell in its own process (auto: on a GPU, so each cell's steps per second are its "
+                         "own: a later cell in one process runs with warm caches; one process trains scene after "
+                         "scene correctly since the geometry warm-up fix, docs/perf-notes/2026-11-26-geometry-warmup.md)")
     ap.add_argument("--cell", default=None, help=argparse.SUPPRESS)  # internal: run one cell, print its row
     ap.add_argument("overrides", nargs="*", help="key=value applied to every cell (tuning only)")
     args = ap.parse_args()
