@@ -204,7 +204,9 @@ def estimate_blur_by_render(tr, sigmas=AUTO_SIGMAS, n_rays: int = AUTO_RAYS) -> 
         y, c0n = y[keep].numpy(), c0[keep].numpy()
         info["rays"] = int(batch["rgb"].shape[0])
 
-        pats = pattern_images(tr.scene, tr.frames, dev)  # read once; each candidate blurs them on the device
+        # read once (kept by the trainer on a GPU); each candidate blurs them where they are
+        pats = tr.pattern_images() if hasattr(tr, "pattern_images") else None
+        pats = pats if pats is not None else pattern_images(tr.scene, tr.frames, dev)
 
         def parts(s: float) -> tuple[np.ndarray, np.ndarray]:
             """(a, b) of :func:`fit_illumination` with the patterns blurred by ``s``."""

@@ -419,13 +419,25 @@ class Trainer:
         return (f"exposure: auto -> {verdict} (the photos' gains against the render spread by "
                 f"{100 * d['spread']:.1f} % at step {d['step']}; threshold {100 * SPREAD_ON:.0f} %)")
 
+    def pattern_images(self) -> dict | None:
+        """The unblurred pattern images on the GPU, read once for the blur estimate's candidates and
+        the chosen blur (:func:`fastneus.train.rays.pattern_images`); None on the CPU (read each time:
+        no second copy in host memory)."""
+        if self.device.type == "cpu":
+            return None
+        if getattr(self, "_patterns", None) is None:
+            from fastneus.train.rays import pattern_images
+
+            self._patterns = pattern_images(self.scene, self.frames, self.device)
+        return self._patterns
+
     def apply_camera_blur(self, sigma: float) -> None:
         """Blur the trainer's patterns by ``sigma`` camera px (from the unblurred images), in place."""
         if self.cfg.rays.blur_via != "pattern" or sigma == self.pattern_blur:
             self.camera_blur = sigma
             return
         new = build_projection(self.scene, self.frames, self.device, refraction=self.cfg.rig.refraction,
-                               camera_blur=sigma).store
+                               camera_blur=sigma, patterns=self.pattern_images()).store
         if new.buffer.shape != self.proj.store.buffer.shape:  # a blur keeps every pattern's size
             raise FastneusError("blurred patterns changed size", field="rays.camera_blur")
         self.proj.store.buffer.copy_(new.buffer)  # in place: the rig and captured CUDA graphs read this buffer
