@@ -2,6 +2,7 @@
 size, channels and bit depth, reading photos, masks and patterns, and lens undistortion."""
 from __future__ import annotations
 
+import math
 import os
 import struct
 import sys
@@ -192,3 +193,25 @@ def undistort(im: np.ndarray, K: np.ndarray, dist: np.ndarray, nearest: bool = F
         m1, m2 = cv2.initUndistortRectifyMap(K, dist, None, K, (im.shape[1], im.shape[0]), cv2.CV_32FC1)
         return cv2.remap(im, m1, m2, cv2.INTER_NEAREST)
     return cv2.undistort(im, K, dist)
+
+
+def gaussian_blur(img, sigma: float, border: str = "zeros"):
+    """``img`` [H, W, C] float tensor blurred by a separable Gaussian of ``sigma`` pixels (taps out to
+    ceil(3 sigma), normalised; OpenCV's kernel of that size), same device and dtype.
+
+    Args:
+        img: [H, W, C] float tensor. sigma: > 0, pixels.
+        border: ``zeros`` (nothing outside the image: a pattern's dark surround) or ``replicate``
+            (the edge pixels continue: a photo's border).
+    """
+    import torch  # noqa: PLC0415 (the CLI reads image headers without paying for torch)
+
+    r = max(1, int(math.ceil(3 * sigma)))
+    x = torch.arange(-r, r + 1, dtype=img.dtype, device=img.device)
+    k = torch.exp(-0.5 * (x / sigma) ** 2)
+    k = k / k.sum()
+    t = img.permute(2, 0, 1)[:, None]  # [C, 1, H, W]
+    t = torch.nn.functional.pad(t, (r, r, r, r), mode="replicate" if border == "replicate" else "constant")
+    t = torch.nn.functional.conv2d(t, k.view(1, 1, 1, -1))
+    t = torch.nn.functional.conv2d(t, k.view(1, 1, -1, 1))
+    return t[:, 0].permute(1, 2, 0)

@@ -30,6 +30,7 @@ from dataclasses import asdict, dataclass, fields
 import numpy as np
 import torch
 
+from fastneus.data.images import gaussian_blur
 from fastneus.data.response import decode, encode, parse_response  # noqa: F401 (decode: tests)
 from fastneus.errors import FastneusError
 
@@ -160,19 +161,6 @@ def blinn_phong(n: torch.Tensor, view: torch.Tensor, to_light: torch.Tensor, shi
     return torch.where(lit, (n * h).sum(-1).clamp_min(0) ** shininess, torch.zeros_like(h[:, 0]))
 
 
-def _gaussian_blur(img: torch.Tensor, sigma: float) -> torch.Tensor:
-    """[H, W, 3] blurred by a separable Gaussian of ``sigma`` px (radius 3 sigma, edges replicated)."""
-    r = max(1, int(math.ceil(3 * sigma)))
-    x = torch.arange(-r, r + 1, dtype=img.dtype, device=img.device)
-    k = torch.exp(-0.5 * (x / sigma) ** 2)
-    k = k / k.sum()
-    t = img.permute(2, 0, 1)[:, None]  # [3, 1, H, W]
-    t = torch.nn.functional.pad(t, (r, r, r, r), mode="replicate")
-    t = torch.nn.functional.conv2d(t, k.view(1, 1, 1, -1))
-    t = torch.nn.functional.conv2d(t, k.view(1, 1, -1, 1))
-    return t[:, 0].permute(1, 2, 0)
-
-
 def vignette(h: int, w: int, strength: float, device) -> torch.Tensor:
     """[H, W, 1] factor 1 - strength * (r / r_corner)^2 about the image centre."""
     yy, xx = torch.meshgrid(torch.arange(h, device=device, dtype=torch.float32) + 0.5,
@@ -187,7 +175,7 @@ def sensor_pixels(img: torch.Tensor, sigma: float, sub: int) -> torch.Tensor:
     The lens's Gaussian (``sigma`` camera pixels) on the fine grid, then each pixel's area averaged
     (``sub`` x ``sub`` box): the pixel value of a continuous image blurred by the lens.
     """
-    x = _gaussian_blur(img, sigma * sub) if sigma > 0 else img
+    x = gaussian_blur(img, sigma * sub, "replicate") if sigma > 0 else img
     t = torch.nn.functional.avg_pool2d(x.permute(2, 0, 1)[None], sub)  # [1, 3, H, W]
     return t[0].permute(1, 2, 0).contiguous()
 
@@ -200,7 +188,7 @@ def finish(img: torch.Tensor, cap: Capture, gain: float, key: tuple, blurred: bo
     """
     x = img
     if cap.blur > 0 and not blurred:
-        x = _gaussian_blur(x, cap.blur)
+        x = gaussian_blur(x, cap.blur, "replicate")
     if cap.vignetting > 0:
         x = x * vignette(x.shape[0], x.shape[1], cap.vignetting, x.device)
     x = x * float(gain)

@@ -173,7 +173,7 @@ def estimate_blur_by_render(tr, sigmas=AUTO_SIGMAS, n_rays: int = AUTO_RAYS) -> 
 
     from fastneus.field.renderer import shade_samples
     from fastneus.train import losses
-    from fastneus.train.rays import build_projection, pattern_images
+    from fastneus.train.rays import build_projection
 
     t_start = time.perf_counter()
     cfg, dev = tr.cfg, tr.device
@@ -204,9 +204,7 @@ def estimate_blur_by_render(tr, sigmas=AUTO_SIGMAS, n_rays: int = AUTO_RAYS) -> 
         y, c0n = y[keep].numpy(), c0[keep].numpy()
         info["rays"] = int(batch["rgb"].shape[0])
 
-        # read once (kept by the trainer on a GPU); each candidate blurs them where they are
-        pats = tr.pattern_images() if hasattr(tr, "pattern_images") else None
-        pats = pats if pats is not None else pattern_images(tr.scene, tr.frames, dev)
+        pats = tr.pattern_images()  # read once (kept on a GPU); each candidate blurs them where they are
 
         def parts(s: float) -> tuple[np.ndarray, np.ndarray]:
             """(a, b) of :func:`fit_illumination` with the patterns blurred by ``s``."""

@@ -23,6 +23,9 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import torch
+
+from fastneus.data.images import gaussian_blur
 
 
 def projector_scale(scene, frames: list[int], pid: str) -> float:
@@ -52,36 +55,21 @@ def blur_pattern(img, sigma: float):
     the same kernel: on a GPU the in-run blur estimate builds six candidates in milliseconds
     instead of ~0.1 s each on the host).
     """
-    import cv2  # noqa: PLC0415 (an image library, only when a blur is on)
-
     if sigma <= 0:
         return img
     if not isinstance(img, np.ndarray):
         return blur_pattern_torch(img, sigma)
+    import cv2  # noqa: PLC0415 (an image library, only when a blur is on)
+
     r = int(math.ceil(3 * sigma))
     out = cv2.GaussianBlur(np.asarray(img, dtype=np.float32), (2 * r + 1, 2 * r + 1), sigmaX=sigma, sigmaY=sigma,
                            borderType=cv2.BORDER_CONSTANT)
     return np.clip(np.round(out), 0, 255).astype(np.uint8)
 
 
-def gaussian_taps(sigma: float) -> np.ndarray:
-    """[2 r + 1] float64 normalised Gaussian taps, r = ceil(3 sigma) (OpenCV's kernel for that size)."""
-    r = int(math.ceil(3 * sigma))
-    x = np.arange(-r, r + 1, dtype=np.float64)
-    k = np.exp(-0.5 * (x / sigma) ** 2)
-    return k / k.sum()
-
-
 def blur_pattern_torch(img, sigma: float):
-    """Torch twin of :func:`blur_pattern`: ``img`` [H, W, 3] uint8 tensor (any device) blurred by the
-    separable Gaussian of :func:`gaussian_taps` with zeros outside, rounded to uint8, same device."""
-    import torch  # noqa: PLC0415
-
+    """Torch twin of :func:`blur_pattern`: ``img`` [H, W, 3] uint8 tensor (any device) blurred with
+    zeros outside (:func:`fastneus.data.images.gaussian_blur`), rounded to uint8, same device."""
     if sigma <= 0:
         return img
-    k = torch.as_tensor(gaussian_taps(sigma), dtype=torch.float32, device=img.device)
-    r = k.numel() // 2
-    x = img.permute(2, 0, 1)[:, None].float()                                   # [3, 1, H, W]
-    x = torch.nn.functional.conv2d(x, k.view(1, 1, 1, -1), padding=(0, r))
-    x = torch.nn.functional.conv2d(x, k.view(1, 1, -1, 1), padding=(r, 0))
-    return x[:, 0].permute(1, 2, 0).round().clamp(0, 255).to(torch.uint8).contiguous()
+    return gaussian_blur(img.float(), sigma).round().clamp(0, 255).to(torch.uint8).contiguous()

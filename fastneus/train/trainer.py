@@ -28,7 +28,8 @@ from fastneus.train.progress import ProgressWriter
 from fastneus.train.rig import Rig
 from fastneus.train.rig import load_into as rig_load
 from fastneus.train.rig import state_of as rig_state
-from fastneus.train.rays import RayBank, build_projection
+from fastneus.train.camblur import blur_pattern_torch
+from fastneus.train.rays import RayBank, build_projection, pattern_images
 from fastneus.data.response import decode_lut, is_identity, resolve_response
 
 
@@ -123,7 +124,6 @@ def _psnr(mse: float) -> float:
     return -10.0 * math.log10(max(mse, 1e-12))
 
 
-
 def lr_warmup(p: float, start: float, frac: float, decay: float) -> float:
     """Learning-rate factor at progress ``p`` of a group that starts learning at ``start``: a
     linear ramp from 0.1 to 1 over the next ``frac`` of the run, then ``decay`` (the run's
@@ -131,6 +131,7 @@ def lr_warmup(p: float, start: float, frac: float, decay: float) -> float:
     if frac > 0 and p < start + frac:
         return 0.1 + 0.9 * max(0.0, p - start) / frac
     return decay
+
 
 class Trainer:
     """Optimises an :class:`SDFField` on a scene.
@@ -185,6 +186,7 @@ class Trainer:
         # (decide_camera_blur)
         blur = camera_blur_sigma(cfg.rays.camera_blur)
         fr = cfg.rays.blur_at_frac, cfg.rays.blur_refine_frac
+        self._patterns: dict | None = None  # pattern images kept on a GPU (pattern_images)
         self.blur_due: list[float] = ([fr[0]] + ([fr[1]] if fr[1] > fr[0] else [])) if blur is None else []
         self.blur_decision: dict = {"mode": "auto", "at_frac": list(self.blur_due), "sigma": None, "rounds": []} \
             if blur is None else {"mode": "set", "sigma": blur}
@@ -419,17 +421,16 @@ class Trainer:
         return (f"exposure: auto -> {verdict} (the photos' gains against the render spread by "
                 f"{100 * d['spread']:.1f} % at step {d['step']}; threshold {100 * SPREAD_ON:.0f} %)")
 
-    def pattern_images(self) -> dict | None:
-        """The unblurred pattern images on the GPU, read once for the blur estimate's candidates and
-        the chosen blur (:func:`fastneus.train.rays.pattern_images`); None on the CPU (read each time:
-        no second copy in host memory)."""
-        if self.device.type == "cpu":
-            return None
-        if getattr(self, "_patterns", None) is None:
-            from fastneus.train.rays import pattern_images
-
-            self._patterns = pattern_images(self.scene, self.frames, self.device)
-        return self._patterns
+    def pattern_images(self) -> dict:
+        """The unblurred pattern images for the blur estimate's candidates and the chosen blur
+        (:func:`fastneus.train.rays.pattern_images`): kept on a GPU after the first call; read
+        again on the CPU (no second copy in host memory)."""
+        if self._patterns is not None:
+            return self._patterns
+        pats = pattern_images(self.scene, self.frames, self.device)
+        if self.device.type != "cpu":
+            self._patterns = pats
+        return pats
 
     def apply_camera_blur(self, sigma: float) -> None:
         """Blur the trainer's patterns by ``sigma`` camera px (from the unblurred images), in place."""
@@ -727,10 +728,6 @@ class Trainer:
         if self.device.type == "cuda" and self.blur_due:
             # the blur estimate's first convolution sets up the GPU's convolution library (~0.2 s
             # measured inside the budget): once here instead, like the kernels
-            import time
-
-            from fastneus.train.camblur import blur_pattern_torch
-
             t = time.perf_counter()
             blur_pattern_torch(torch.zeros((8, 8, 3), dtype=torch.uint8, device=self.device), 0.7)
             torch.cuda.synchronize(self.device)
