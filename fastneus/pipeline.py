@@ -326,7 +326,8 @@ def _train_and_finish(trainer, scene, cfg: Config, out: Path, device: str, conso
         last = trainer.fit(final_save=not finish)  # finish_run saves it right after mesh.ply
     # decided during the run (camera_blur=auto, exposure=auto): the decisions and their printed lines
     _update_run_json(out, {"camera_blur": trainer.blur_decision, "camera_blur_note": trainer.blur_note(),
-                           "exposure": trainer.exposure_decision, "exposure_note": trainer.exposure_note()})
+                           "exposure": trainer.exposure_decision, "exposure_note": trainer.exposure_note(),
+                           **({"cuda_graphs": last["cuda_graphs"]} if last and "cuda_graphs" in last else {})})
     if console is not None and last:
         console.print(f"trained {trainer.step} steps in {trainer.elapsed:.1f}s: loss {last['loss']:.4f}, "
                       f"PSNR {last['psnr']:.2f} dB, i_r {last['i_r']:.4f}, i_b {last['i_b']:.4f}")

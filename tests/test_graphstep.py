@@ -198,12 +198,14 @@ def test_graphs_released_at_the_end_of_training(monkeypatch):
     g = object.__new__(graphstep.StepGraphs)
     g.cache, g.device = collections.OrderedDict((k, object()) for k in "ab"), "cpu"
     g.captured, g.replayed, g.eager, g.evicted = 2, 10, 3, 0
+    g.captures = [{"step": 1, "rays": 64, "capacity": 1024, "seconds": 0.05}] * 2
     calls = []
     monkeypatch.setattr(torch.cuda, "synchronize", lambda d=None: calls.append("sync"))
     monkeypatch.setattr(torch.cuda, "empty_cache", lambda: calls.append("empty"))
     g.release()
     assert not g.cache and calls == ["sync", "empty"]
-    assert g.summary() == {"graphs": 0, "captured": 2, "replayed": 10, "eager": 3, "evicted": 0}
+    assert g.summary() == {"graphs": 0, "captured": 2, "replayed": 10, "eager": 3, "evicted": 0,
+                           "captures": g.captures}
     g.release()  # nothing cached: nothing to hand back
     assert calls == ["sync", "empty"]
 

@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import collections
 import math
+import time
 
 import torch
 
@@ -103,6 +104,7 @@ class StepGraphs:
         self.enabled = True
         self.console = console
         self.captured = self.replayed = self.eager = self.evicted = 0
+        self.captures: list[dict] = []  # each capture's step, key sizes and host seconds (run.json)
         trainer.field.enable_device_schedule()
 
     def eligible(self, tr, p: float) -> bool:
@@ -158,6 +160,7 @@ class StepGraphs:
             return dict(e.rec)
         # first step of this key: the real update, eagerly on the side stream (warms up its
         # cuBLAS handle and autograd there), then record the graph (recording runs nothing)
+        t0 = time.perf_counter()
         cur = torch.cuda.current_stream(self.device)
         self.side.wait_stream(cur)
         with torch.cuda.stream(self.side):
@@ -171,6 +174,8 @@ class StepGraphs:
             cur.wait_stream(self.side)
             e.graph, e.rec = g, out
             self.captured += 1
+            self.captures.append({"step": tr.step, "rays": key[0], "capacity": capacity,
+                                  "seconds": round(time.perf_counter() - t0, 4)})
         except Exception as err:  # noqa: BLE001 - any capture failure falls back to eager steps
             self.enabled = False
             self.cache.clear()
@@ -207,4 +212,4 @@ class StepGraphs:
 
     def summary(self) -> dict:
         return {"graphs": len(self.cache), "captured": self.captured, "replayed": self.replayed, "eager": self.eager,
-                "evicted": self.evicted}
+                "evicted": self.evicted, "captures": self.captures[:64]}

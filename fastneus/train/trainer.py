@@ -522,6 +522,28 @@ class Trainer:
         Returns:
             {"loss", "l1", "mse", "eik"} as tensors, or None when the host guard skipped the step.
         """
+        loss, terms = self.step_loss(batch, xr, smp, p, valid)
+        self.opt.zero_grad(set_to_none=True)
+        loss.backward()
+        if self._skipped_dev is not None:  # NaN/Inf guard on the device (no host sync)
+            ok = finite_flag(self.opt, loss)
+            if device_adam:
+                self.opt.device_update(ok)
+            else:
+                self.opt.gated_step(ok)
+            self._skipped_dev += (~ok).to(torch.int64)
+        elif not finite_step(self.opt, loss):  # NaN/Inf guard
+            self._skipped += 1
+            return None
+        return {"loss": loss.detach(), "l1": terms["rgb"].detach(), "mse": terms["mse"], "eik": terms["eik"]}
+
+    def step_loss(self, batch: dict, xr: torch.Tensor, smp: dict, p: float,
+                  valid: torch.Tensor | None = None) -> tuple[torch.Tensor, dict]:
+        """The step's loss (field, compositing, every loss term) before its backward.
+
+        Arguments as :meth:`compute`. Returns:
+            (loss, terms): the scalar total and the terms it sums (``losses.*`` dicts merged).
+        """
         c = self.cfg
         i_r, i_b = self.illumination()
         bg_on, fg_on = self.photo_priors(p)  # both off when masks are used
@@ -567,20 +589,7 @@ class Trainer:
         if c.loss.curvature_weight > 0 and out["curv"] is not None:
             cv = None if valid is None else valid[: out["curv"].shape[0]]
             terms |= losses.curvature(out["curv"], c.loss.curvature_weight, valid=cv)
-        loss = losses.total(terms)
-        self.opt.zero_grad(set_to_none=True)
-        loss.backward()
-        if self._skipped_dev is not None:  # NaN/Inf guard on the device (no host sync)
-            ok = finite_flag(self.opt, loss)
-            if device_adam:
-                self.opt.device_update(ok)
-            else:
-                self.opt.gated_step(ok)
-            self._skipped_dev += (~ok).to(torch.int64)
-        elif not finite_step(self.opt, loss):  # NaN/Inf guard
-            self._skipped += 1
-            return None
-        return {"loss": loss.detach(), "l1": terms["rgb"].detach(), "mse": terms["mse"], "eik": terms["eik"]}
+        return losses.total(terms), terms
 
     # ------------------------------------------------------------------ loop
     def fit(self, final_save: bool = True) -> dict:
@@ -725,14 +734,48 @@ class Trainer:
             ops += ("marching_cubes", "adam_update")
         seconds = prepare_kernels(self.device, say=self.console.print if self.console is not None else None,
                                   backend=self.cfg.run.backend, ops=ops, report=report)
-        if self.device.type == "cuda" and self.blur_due:
-            # the blur estimate's first convolution sets up the GPU's convolution library (~0.2 s
-            # measured inside the budget): once here instead, like the kernels
+        if self.device.type == "cuda":
             t = time.perf_counter()
-            blur_pattern_torch(torch.zeros((8, 8, 3), dtype=torch.uint8, device=self.device), 0.7)
+            if self.blur_due:
+                # the blur estimate's first convolution sets up the GPU's convolution library
+                # (~0.2 s) and its first round read the patterns from disk (~0.1 s), both measured
+                # inside the budget: here instead, like the kernels
+                blur_pattern_torch(torch.zeros((8, 8, 3), dtype=torch.uint8, device=self.device), 0.7)
+                self.pattern_images()
+            self.warm_up()
             torch.cuda.synchronize(self.device)
             seconds += time.perf_counter() - t
         return seconds
+
+    def warm_up(self) -> None:
+        """The first step's loss and its backward once, on real rays, changing nothing.
+
+        On CUDA the first use of each kernel loads its module (lazy loading) and cuBLAS and
+        autograd set themselves up: the first step took 0.33 s against ~10 ms for the next ones
+        (rock, H100), a tenth of a 3-s budget. :meth:`prime` runs this before the clock. The
+        gradients come back from :func:`torch.autograd.grad` and are dropped; parameters,
+        optimizer state, the occupancy grid, the run's generator and torch's global random
+        stream are left as they were (tests/test_warm_up.py).
+        """
+        from fastneus.field.renderer import march_samples
+
+        c = self.cfg
+        gen = torch.Generator(device=self.device)
+        gen.manual_seed(int(c.run.seed) * 7919 + 29)
+        state = self.gen.get_state()  # the surface prior draws from the run's generator
+        params = [q for g in self.opt.param_groups for q in g["params"] if q.requires_grad]
+        with torch.random.fork_rng(devices=[self.device] if self.device.type == "cuda" else []):
+            sub = self.blur_sub
+            batch = self.rig.rays(self.bank.sample(max(1, self.n_rays // sub), gen,
+                                                   bright_fraction=c.rays.bright_fraction,
+                                                   blur=self.camera_blur if sub > 1 else 0.0, sub=sub))
+            xr = torch.rand(max(256, self.n_rays // 4), 3, device=self.device, generator=gen) * 2 - 1
+            smp = march_samples(self.grid.bits, self.grid.resolution, batch["origins"], batch["dirs"], c)
+            if smp["n_samples"] > 0:
+                loss, _ = self.step_loss(batch, xr, smp, 0.0)
+                if loss.requires_grad:
+                    torch.autograd.grad(loss, params, allow_unused=True)
+        self.gen.set_state(state)
 
     # ------------------------------------------------------------------ checkpoints
     def state(self) -> dict:
