@@ -219,3 +219,41 @@ def test_a_finished_fit_holds_no_graph_memory(tmp_path):
     tr = Trainer(scene, cfg, tmp_path / "r", "cuda")
     tr.fit(final_save=False)
     assert tr.graphs is not None and tr.graphs.captured >= 1 and not tr.graphs.cache
+
+
+def test_a_key_is_captured_only_when_the_next_step_repeats_it():
+    """While the ray count settles (after the occupancy grid's first update it climbs through
+    ~8 buckets in as many steps) each new key runs one eager step on the unpadded inputs and
+    records nothing: a graph captured for one step costs 30-50 ms of host time and is never
+    replayed. The capacity of that pending key is reused like a cached one's."""
+    import collections
+
+    from fastneus.train import graphstep
+
+    g = object.__new__(graphstep.StepGraphs)  # the bookkeeping only (no CUDA stream)
+    g.cache, g.enabled, g._pending, g.eager = collections.OrderedDict(), True, None, 0
+    calls = []
+
+    class _T:
+        cfg = load_config("cpu-quick")
+
+        @staticmethod
+        def photo_priors(p):
+            return False, False
+
+        @staticmethod
+        def compute(batch, xr, smp, p, valid=None, device_adam=False):
+            calls.append((batch["origins"].shape[0], smp["n_samples"], valid, device_adam))
+            return {"loss": torch.zeros(())}
+
+    xr = torch.zeros(256, 3)
+    for n, s in ((1536, 60_000), (2560, 100_000), (3328, 140_000)):  # a new key every step
+        batch = {"origins": torch.zeros(n, 3), "dirs": torch.zeros(n, 3)}
+        g.step(_T, batch, xr, {"n_samples": s}, 0.5)
+    assert calls == [(1536, 60_000, None, False), (2560, 100_000, None, False), (3328, 140_000, None, False)]
+    assert not g.cache and g.eager == 3
+    pending = g._pending
+    assert pending[0] == 3328 and pending[1] >= 140_000 * 1.05
+    batch = {"origins": torch.zeros(3328, 3), "dirs": torch.zeros(3328, 3)}
+    # a few % more samples on the next step: the pending key's capacity still holds them
+    assert g._capacity(_T, batch, 143_000, 0.5) == pending[1]
