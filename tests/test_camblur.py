@@ -248,3 +248,47 @@ def test_camera_blur_config_values():
         with pytest.raises(FastneusError):
             load_config("cpu-quick", bad)
     assert load_config("cpu-quick", ["camera_blur=0.7", "blur_via=rays"]).rays.blur_via == "rays"
+
+
+def _blur_trainer(tmp_path, device):
+    from conftest import SMALL_RUN
+
+    from fastneus.config import load_config
+    from fastneus.synth.render import synthesize
+    from fastneus.train.trainer import Trainer
+
+    scene = synthesize(tmp_path / "s", shape="sphere", views=2, size=(24, 24), pattern="crosslaser",
+                       device=device, noise=0.0, proj_size=(64, 48), progress=False, contact_sheet=False)
+    cfg = load_config("cpu-quick", SMALL_RUN + ["threads=1", "steps=10", "camera_blur=auto", "cuda_graph=off"])
+    return scene, Trainer(scene, cfg, tmp_path / "r", device)
+
+
+def _check_blurred_stores(tmp_path, device):
+    from fastneus.train.blurfit import AUTO_SIGMAS
+    from fastneus.train.rays import build_projection
+
+    scene, tr = _blur_trainer(tmp_path, device)
+    tr.prime()
+    kept = dict(tr._blurred)
+    assert len(kept) == (len(AUTO_SIGMAS) if device == "cuda" else 0)  # the CPU keeps nothing
+    for s in AUTO_SIGMAS:
+        fresh = build_projection(scene, tr.frames, device, camera_blur=s, patterns=tr.pattern_images()).store
+        got = tr.blurred_store(s)
+        assert torch.equal(got.buffer, fresh.buffer) and torch.equal(got.meta, fresh.meta)
+        if device == "cuda":
+            assert got is kept[round(s, 6)]  # built once, before the clock
+    for _ in range(10):  # both estimates (30 and 50 % of the run) use them, then they go
+        tr.train_step()
+    assert not tr.blur_pending and tr._blurred == {}
+    if tr.camera_blur > 0:
+        assert torch.equal(tr.proj.store.buffer, build_projection(scene, tr.frames, device, camera_blur=tr.camera_blur,
+                                                                  patterns=tr.pattern_images()).store.buffer)
+
+
+def test_blur_candidates_are_the_built_patterns(tmp_path):
+    _check_blurred_stores(tmp_path, "cpu")
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+def test_cuda_blur_candidates_are_built_before_the_clock_and_dropped_after(tmp_path):
+    _check_blurred_stores(tmp_path, "cuda")

@@ -173,7 +173,6 @@ def estimate_blur_by_render(tr, sigmas=AUTO_SIGMAS, n_rays: int = AUTO_RAYS) -> 
 
     from fastneus.field.renderer import shade_samples
     from fastneus.train import losses
-    from fastneus.train.rays import build_projection
 
     t_start = time.perf_counter()
     cfg, dev = tr.cfg, tr.device
@@ -204,13 +203,10 @@ def estimate_blur_by_render(tr, sigmas=AUTO_SIGMAS, n_rays: int = AUTO_RAYS) -> 
         y, c0n = y[keep].numpy(), c0[keep].numpy()
         info["rays"] = int(batch["rgb"].shape[0])
 
-        pats = tr.pattern_images()  # read once (kept on a GPU); each candidate blurs them where they are
-
         def parts(s: float) -> tuple[np.ndarray, np.ndarray]:
-            """(a, b) of :func:`fit_illumination` with the patterns blurred by ``s``."""
-            cand = build_projection(tr.scene, tr.frames, dev, refraction=cfg.rig.refraction, camera_blur=s,
-                                    patterns=pats)
-            proj = tr.rig.projection(dataclasses.replace(tr.proj, store=cand.store))
+            """(a, b) of :func:`fit_illumination` with the patterns blurred by ``s`` (on a GPU the
+            candidates were built before the clock: Trainer.prime)."""
+            proj = tr.rig.projection(dataclasses.replace(tr.proj, store=tr.blurred_store(s)))
             return (render(proj, 0.0, 1.0) - c0)[keep].numpy(), (render(proj, 1.0, 0.0) - c0)[keep].numpy()
 
         ab = {float(s): parts(s) for s in sigmas}

@@ -28,7 +28,6 @@ from fastneus.train.progress import ProgressWriter
 from fastneus.train.rig import Rig
 from fastneus.train.rig import load_into as rig_load
 from fastneus.train.rig import state_of as rig_state
-from fastneus.train.camblur import blur_pattern_torch
 from fastneus.train.rays import RayBank, build_projection, pattern_images
 from fastneus.data.response import decode_lut, is_identity, resolve_response
 
@@ -187,6 +186,7 @@ class Trainer:
         blur = camera_blur_sigma(cfg.rays.camera_blur)
         fr = cfg.rays.blur_at_frac, cfg.rays.blur_refine_frac
         self._patterns: dict | None = None  # pattern images kept on a GPU (pattern_images)
+        self._blurred: dict = {}  # sigma -> blurred PatternStore kept on a GPU (blurred_store)
         self.blur_due: list[float] = ([fr[0]] + ([fr[1]] if fr[1] > fr[0] else [])) if blur is None else []
         self.blur_decision: dict = {"mode": "auto", "at_frac": list(self.blur_due), "sigma": None, "rounds": []} \
             if blur is None else {"mode": "set", "sigma": blur}
@@ -381,6 +381,8 @@ class Trainer:
         d.update(sigma=info["sigma"], step=info["step"], sigmas=info["sigmas"], residuals=info["residuals"],
                  seconds=round(sum(r["seconds"] for r in d["rounds"]), 3))
         self.apply_camera_blur(float(info["sigma"]))
+        if not self.blur_due:  # the last estimate: its candidates are not needed again
+            self._blurred.clear()
         if self.console is not None:
             self.console.print(self.blur_note(), soft_wrap=True, highlight=False, markup=False)
         return self.blur_decision
@@ -432,13 +434,30 @@ class Trainer:
             self._patterns = pats
         return pats
 
+    def blurred_store(self, sigma: float, keep: bool = False):
+        """The scene's patterns blurred by ``sigma`` camera px, packed (a :class:`PatternStore`
+        like ``self.proj.store``), from :meth:`pattern_images`.
+
+        Args:
+            sigma: the blur. keep: on a GPU, keep it for the next call (the blur estimate's
+                candidates, built by :meth:`prime` before the clock: each estimate then only
+                renders; the stores are uint8, ~2.4 MB per 1024 x 768 pattern).
+        """
+        key = round(float(sigma), 6)
+        store = self._blurred.get(key)
+        if store is None:
+            store = build_projection(self.scene, self.frames, self.device, refraction=self.cfg.rig.refraction,
+                                     camera_blur=sigma, patterns=self.pattern_images()).store
+            if keep and self.device.type != "cpu":
+                self._blurred[key] = store
+        return store
+
     def apply_camera_blur(self, sigma: float) -> None:
         """Blur the trainer's patterns by ``sigma`` camera px (from the unblurred images), in place."""
         if self.cfg.rays.blur_via != "pattern" or sigma == self.pattern_blur:
             self.camera_blur = sigma
             return
-        new = build_projection(self.scene, self.frames, self.device, refraction=self.cfg.rig.refraction,
-                               camera_blur=sigma, patterns=self.pattern_images()).store
+        new = self.blurred_store(sigma)
         if new.buffer.shape != self.proj.store.buffer.shape:  # a blur keeps every pattern's size
             raise FastneusError("blurred patterns changed size", field="rays.camera_blur")
         self.proj.store.buffer.copy_(new.buffer)  # in place: the rig and captured CUDA graphs read this buffer
@@ -737,11 +756,14 @@ class Trainer:
         if self.device.type == "cuda":
             t = time.perf_counter()
             if self.blur_due:
-                # the blur estimate's first convolution sets up the GPU's convolution library
-                # (~0.2 s) and its first round read the patterns from disk (~0.1 s), both measured
-                # inside the budget: here instead, like the kernels
-                blur_pattern_torch(torch.zeros((8, 8, 3), dtype=torch.uint8, device=self.device), 0.7)
-                self.pattern_images()
+                # the blur estimate's first convolution set up the GPU's convolution library
+                # (~0.2 s), and its first round read the patterns from disk and blurred them by
+                # each candidate (~0.1 s more than the second round), all inside the budget: the
+                # candidates depend on the scene only, so they are built here, like the kernels
+                from fastneus.train.blurfit import AUTO_SIGMAS
+
+                for sigma in AUTO_SIGMAS:
+                    self.blurred_store(sigma, keep=True)
             self.warm_up()
             torch.cuda.synchronize(self.device)
             seconds += time.perf_counter() - t
@@ -757,8 +779,6 @@ class Trainer:
         optimizer state, the occupancy grid, the run's generator and torch's global random
         stream are left as they were (tests/test_warm_up.py).
         """
-        from fastneus.field.renderer import march_samples
-
         c = self.cfg
         gen = torch.Generator(device=self.device)
         gen.manual_seed(int(c.run.seed) * 7919 + 29)
