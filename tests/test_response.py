@@ -203,8 +203,12 @@ def test_exposure_recovered_on_a_tiny_scene(tmp_path):
     scene.save()
     true = np.log(np.asarray(scene.meta["capture"]["gains"]))
     assert np.abs(true).max() > 0.1  # the test needs gains that differ
+    # the mask weight of the GPU preset: on this 6-view sphere cpu-quick's 0.3 recovers the gains
+    # less well (0.74-0.88 of "no model" over 3 seeds, against 0.48-0.82 at 0.1), while on the
+    # 20-view realistic scenes it recovers them better (docs/benchmarks/mask-weight.md); this test
+    # is about the exposure model, not the mask weight
     cfg = load_config("cpu-quick", ["steps=400", "threads=1", "log_every=50", "save_every=1000",
-                                    "mesh_resolution=16", "exposure=true"])
+                                    "mesh_resolution=16", "exposure=true", "mask_weight=0.1"])
     tr, m = train_scene(scene, cfg, tmp_path / "run", "cpu")
     learned = np.log(np.asarray(m["exposure_gains"]))
     assert learned[0] == 0.0  # the anchor
