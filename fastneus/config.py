@@ -191,6 +191,8 @@ class LossSection:
     bg_prior: str = knob("auto", "background pixels are free space without masks: auto (>= 5 % of pixels) | on | off",
                          choices=("auto", "on", "off"))
     bg_weight: float = knob(0.1, "weight of the background prior", lo=0.0)
+    bg_weight_lit: float = knob(0.0, "weight of the background and foreground priors in a lit room (the object's "
+                                "pixels bright and solid, not lasers in the dark); 0 = bg_weight", lo=0.0)
     bg_lit: str = knob("auto", "background prior only where the projectors light the ray's surface (a black pixel "
                        "in a dark room says nothing of an unlit surface): auto (when >= 85 % of pixels are "
                        "background colour) | on | off", choices=("auto", "on", "off"))

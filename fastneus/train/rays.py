@@ -58,6 +58,39 @@ def backdrop_tolerance(floor: float, k: float, noise: float, cap: float) -> floa
 LIT_ROOM = 0.15  # median brightness of the above-threshold pixels that makes a lit room (foreground_flags)
 
 
+SOLID = 0.5  # share of the above-threshold pixels inside a 3 x 3 block of them that makes a lit room
+
+
+def _brightness(codes: torch.Tensor, lut: torch.Tensor | None, background: float) -> torch.Tensor:
+    """[N] the brightest channel of each pixel (linear) above ``background``."""
+    values = lut if lut is not None else torch.arange(256, dtype=torch.float32, device=codes.device) / 255.0
+    return values[codes.long()].amax(1) - float(background)
+
+
+def lit_room(codes: torch.Tensor, lut: torch.Tensor | None, background: float, threshold: float,
+             sizes: list[tuple[int, int]]) -> bool:
+    """Whether the photos show a lit room rather than lasers in the dark: the pixels more than
+    ``threshold`` above the background are bright (median >= :data:`LIT_ROOM`) *and* form solid
+    regions (>= :data:`SOLID` of them inside a 3 x 3 block of such pixels). In a dark room either
+    the object's ambient-lit pixels are far dimmer than the laser lines, or, where they stay under
+    the threshold, only the lines count, and lines are thin.
+
+    Args:
+        codes: [sum HW, 3] uint8, frames concatenated; lut: [256] decoding or None (linear);
+            background: in [0, 1]; threshold: linear; sizes: (W, H) per frame.
+    """
+    bright = _brightness(codes, lut, background)
+    above = bright > threshold
+    if not bool(above.any()) or float(bright[above].median()) < LIT_ROOM:
+        return False
+    inside, o = 0, 0
+    for w, h in sizes:
+        a = above[o:o + w * h].reshape(1, 1, h, w).float()
+        inside += int((-torch.nn.functional.max_pool2d(-a, 3, stride=1, padding=1) > 0.5).sum())
+        o += w * h
+    return inside >= SOLID * int(above.sum())
+
+
 def foreground_flags(codes: torch.Tensor, lut: torch.Tensor | None, background: float, threshold: float,
                      relative: float, sizes: list[tuple[int, int]]) -> torch.Tensor:
     """[sum HW] bool: pixels clearly brighter than the background, read off the photos (the
@@ -72,8 +105,7 @@ def foreground_flags(codes: torch.Tensor, lut: torch.Tensor | None, background: 
         codes: [sum HW, 3] uint8, frames concatenated; lut: [256] or None (linear codes);
         background: in [0, 1]; threshold: linear; relative: in (0, 1]; sizes: (W, H) per frame.
     """
-    values = lut if lut is not None else torch.arange(256, dtype=torch.float32, device=codes.device) / 255.0
-    bright = values[codes.long()].amax(1) - float(background)                  # [sum HW]
+    bright = _brightness(codes, lut, background)                                 # [sum HW]
     out = bright > threshold
     # a lit room only: in a dark one the object's ambient-lit pixels are far dimmer than the laser
     # lines crossing it and would fail the relative test (realistic ant Dark: 6.0 -> 40.8 mm)
@@ -284,6 +316,8 @@ class RayBank:
             self.bg = self._bg_flags(background, self.bg_tolerance)             # [sum HW] bool
             self.bg_fraction = float(self.bg.float().mean())
         self.fg = None
+        # a lit room (not lasers in the dark): the photo priors' weight may differ (loss.bg_weight_lit)
+        self.lit_room = background is not None and lit_room(self.rgb, self.lut, background, bg_cap, sizes)
         if background is not None and fg_relative > 0:
             self.fg = foreground_flags(self.rgb, self.lut, background, bg_cap, fg_relative, sizes)
         self.cdf = None

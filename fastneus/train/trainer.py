@@ -180,6 +180,13 @@ class Trainer:
             self.bg_note += (f"; background within {tol:.3g} of it ({cfg.loss.bg_noise_k:g} x the photos' noise "
                              f"floor {self.bank.bg_noise:.2g})")
         self.bg_lit = self.bg_used and resolve_bg_lit(cfg, self.bank.bg_fraction)
+        # the photo priors' weight: in a lit room the CPU preset trusts them more (thin legs were
+        # lost to the photometric term otherwise); in the dark a stronger prior carved dim surface
+        # (docs/benchmarks/mask-weight.md)
+        self.bg_weight = cfg.loss.bg_weight
+        if self.bg_used and cfg.loss.bg_weight_lit > 0 and getattr(self.bank, "lit_room", False):
+            self.bg_weight = cfg.loss.bg_weight_lit
+            self.bg_note += f"; a lit room: weight {self.bg_weight:g} (bg_weight_lit)"
         # the camera's blur on the projected light (fastneus.train.camblur; blur_via=rays: as rays below);
         # auto: none until it is estimated at blur_at_frac (and again at blur_refine_frac) of the run
         # (decide_camera_blur)
@@ -593,7 +600,7 @@ class Trainer:
             is_bg = batch["bg"]
             if lit is not None:  # dark room: a black pixel is empty space only where a surface would be lit
                 is_bg = is_bg * (lit / c.loss.bg_lit_ref).clamp(max=1.0)
-            terms |= losses.background_free_space(opacity, is_bg, ramp * c.loss.bg_weight)
+            terms |= losses.background_free_space(opacity, is_bg, ramp * self.bg_weight)
         if fg_on:
             # a pixel (any of its shots, any channel) clearly above the backdrop: the object is there
             if "fg" in batch:  # flagged at load (the bank: threshold and the lens's halo left out)
@@ -601,7 +608,7 @@ class Trainer:
             else:
                 rgb = batch["rgb"]
                 is_fg = ((rgb.reshape(rgb.shape[0], -1).amax(-1) - c.rays.background) > c.loss.fg_threshold).float()
-            terms |= losses.foreground_opacity(opacity, is_fg, c.loss.bg_weight)
+            terms |= losses.foreground_opacity(opacity, is_fg, self.bg_weight)
         if self.prior is not None and p < c.init.prior_frac:
             w = losses.prior_fade(p, c.init.prior_weight, c.init.prior_frac)
             terms |= losses.surface_prior(self.prior.loss(self.field, fit_batch(c) // 2, self.gen, eikonal=False), w)
