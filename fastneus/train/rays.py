@@ -7,6 +7,8 @@ Projectors are flattened to per-(frame, projector) matrices and one shared
 """
 from __future__ import annotations
 
+import functools
+
 import math
 
 from dataclasses import dataclass, field
@@ -67,6 +69,12 @@ def _brightness(codes: torch.Tensor, lut: torch.Tensor | None, background: float
     return values[codes.long()].amax(1) - float(background)
 
 
+def _bright_objects(bright: torch.Tensor, above: torch.Tensor) -> bool:
+    """The pixels above the background (``above``) have a median brightness of at least
+    :data:`LIT_ROOM` (in a dark room the ambient-lit object is far dimmer than the laser lines)."""
+    return bool(above.any()) and float(bright[above].median()) >= LIT_ROOM
+
+
 def lit_room(codes: torch.Tensor, lut: torch.Tensor | None, background: float, threshold: float,
              sizes: list[tuple[int, int]]) -> bool:
     """Whether the photos show a lit room rather than lasers in the dark: the pixels more than
@@ -81,7 +89,7 @@ def lit_room(codes: torch.Tensor, lut: torch.Tensor | None, background: float, t
     """
     bright = _brightness(codes, lut, background)
     above = bright > threshold
-    if not bool(above.any()) or float(bright[above].median()) < LIT_ROOM:
+    if not _bright_objects(bright, above):
         return False
     inside, o = 0, 0
     for w, h in sizes:
@@ -109,7 +117,7 @@ def foreground_flags(codes: torch.Tensor, lut: torch.Tensor | None, background: 
     out = bright > threshold
     # a lit room only: in a dark one the object's ambient-lit pixels are far dimmer than the laser
     # lines crossing it and would fail the relative test (realistic ant Dark: 6.0 -> 40.8 mm)
-    if not bool(out.any()) or float(bright[out].median()) < LIT_ROOM:
+    if not _bright_objects(bright, out):
         return out
     o = 0
     for w, h in sizes:
@@ -316,8 +324,7 @@ class RayBank:
             self.bg = self._bg_flags(background, self.bg_tolerance)             # [sum HW] bool
             self.bg_fraction = float(self.bg.float().mean())
         self.fg = None
-        # a lit room (not lasers in the dark): the photo priors' weight may differ (loss.bg_weight_lit)
-        self.lit_room = background is not None and lit_room(self.rgb, self.lut, background, bg_cap, sizes)
+        self._room = (bg_cap, sizes)  # for lit_room, decided only when asked
         if background is not None and fg_relative > 0:
             self.fg = foreground_flags(self.rgb, self.lut, background, bg_cap, fg_relative, sizes)
         self.cdf = None
@@ -325,6 +332,14 @@ class RayBank:
             # brightness-proportional pixel distribution (float64: millions of pixels)
             w = self.rgb.max(dim=1).values.double() / 255.0 + 1e-3
             self.cdf = torch.cumsum(w, 0)
+
+    @functools.cached_property
+    def lit_room(self) -> bool:
+        """Whether the photos show a lit room, not lasers in the dark (:func:`lit_room`; the photo
+        priors' weight may differ there: ``loss.bg_weight_lit``). False without a background."""
+        if self._background is None:
+            return False
+        return lit_room(self.rgb, self.lut, self._background, *self._room)
 
     def _bg_flags(self, background: float, tol: float) -> torch.Tensor:
         """[sum HW] bool: every channel within ``tol`` (linear) of ``background``."""
