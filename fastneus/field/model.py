@@ -15,6 +15,7 @@ import math
 import torch
 import torch.nn as nn
 
+from fastneus.field.sdf_mlp import fusable, mlp_and_input_grad
 from fastneus.kernels import get_op
 from fastneus.kernels.hashgrid import HashGridConfig, init_table
 
@@ -57,6 +58,9 @@ class SDFField(nn.Module):
             if i < len(dims) - 2:
                 layers.append(nn.Softplus(beta=100))
         self.sdf_net = nn.Sequential(*layers).to(device)
+        # the analytic gradient's MLP part as one autograd node (sdf_mlp.py); False = autograd's
+        # double backward, the reference the tests compare it with
+        self.fused_mlp = fusable(self.sdf_net)
 
         # colour MLP: [x, normal, (view dir), geo features] -> D (sigmoid)
         c_in = 3 + 3 + (3 if network.view_dependent else 0) + network.geo_features
@@ -209,7 +213,9 @@ class SDFField(nn.Module):
 
         The encoding takes u = (x + 1) / 2 unclamped: ``hash_encode_jac`` clamps it and
         zeroes the Jacobian on clamped axes (d u / d x = 0 outside the box), so only the
-        MLP's direct x input contributes there. Needs grad mode (see :meth:`sdf_and_grad`).
+        MLP's direct x input contributes there. The MLP part is one autograd node
+        (``fused_mlp``, :mod:`fastneus.field.sdf_mlp`) when the network has one hidden layer;
+        otherwise autograd's double backward, which needs grad mode (see :meth:`sdf_and_grad`).
 
         Args:
             x: [N, 3] float32 normalised positions.
@@ -219,6 +225,9 @@ class SDFField(nn.Module):
         """
         feats, jac = self._encode_jac(((x + 1.0) * 0.5).contiguous())  # [N, L*F], [N, L*F, 3]
         net_in = torch.cat([x, feats], dim=-1)
+        if self.fused_mlp:
+            out, g = mlp_and_input_grad(self.sdf_net, net_in)  # [N, 1+G], [N, 3 + L*F]
+            return out, self.grad_from_jac(g, jac, 0.5)
         if not net_in.requires_grad:  # frozen table and constant x: differentiate the MLP input anyway
             net_in = net_in.detach().requires_grad_()
         out = self.sdf_net(net_in)
@@ -230,7 +239,7 @@ class SDFField(nn.Module):
 
     def _sdf_and_grad_analytic(self, x: torch.Tensor, with_curvature: bool):
         n = x.shape[0]
-        if torch.is_grad_enabled():
+        if torch.is_grad_enabled() or self.fused_mlp:  # the fused node needs no graph
             out, grad = self.geometry_and_grad(x)
         else:
             # inference (mesh/normal renders under no_grad): autograd.grad needs a graph, so build

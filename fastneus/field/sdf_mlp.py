@@ -1,0 +1,82 @@
+"""The SDF network's output and its input gradient in one autograd node (issue 22).
+
+The analytic SDF gradient needs d f / d input of the one-hidden-layer Softplus MLP, and the
+eikonal and normal losses need that gradient differentiable: with plain autograd this is a
+forward, a ``torch.autograd.grad(create_graph=True)`` and, at ``backward``, the double backward
+of every op (Softplus's second derivative alone is several elementwise kernels and autograd
+nodes). Here the forward returns ``out`` and ``g`` together and the backward is written out by
+hand, with the same maths:
+
+    z = a W1^T + b1,  s = sigmoid(beta z) = softplus'(z),  h = softplus(z),  out = h W2^T + b2
+    g = d out[:, 0] / d a = (s * w) W1,  w = W2[0]
+
+    given L_out = dL/d out and L_g = dL/d g:
+    P  = L_g W1^T                                  (dL / d(s * w))
+    dz = s * (L_out W2 + beta * P * w * (1 - s))   (s' = beta s (1 - s))
+    dL/da = dz W1,  dL/dW1 = dz^T a + (s * w)^T L_g,  dL/db1 = sum dz
+    dL/dW2 = L_out^T h,  dL/dW2[0] += sum_n P * s,  dL/db2 = sum L_out
+
+Fewer kernels on the GPU (a captured step replays them: fewer passes over [N, H]) and fewer
+autograd nodes and Python on the CPU, where the engine's per-node cost is serial. The backward
+is first order only (nothing differentiates the eikonal loss twice). The autograd path stays
+the reference: tests/test_sdf_mlp.py compares outputs and gradients and runs a float64
+gradcheck.
+"""
+from __future__ import annotations
+
+import torch
+import torch.nn as nn
+import torch.nn.functional as F
+
+
+class _SoftplusMLPWithGrad(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, a, w1, b1, w2, b2, beta: float, threshold: float):
+        z = torch.addmm(b1, a, w1.t())                       # [N, H]
+        h = F.softplus(z, beta, threshold)
+        # softplus's derivative; above the threshold (softplus's linear branch, derivative 1)
+        # sigmoid(beta z) > sigmoid(20) rounds to 1 in float32, so no mask is needed for
+        # autograd's values (float64 differs there by < 3e-9)
+        s = torch.sigmoid(z * beta)
+        out = torch.addmm(b2, h, w2.t())                     # [N, O]
+        u = s * w2[0]                                        # [N, H]
+        g = u @ w1                                           # [N, D]
+        ctx.save_for_backward(a, w1, w2, s, h, u)
+        ctx.beta = beta
+        return out, g
+
+    @staticmethod
+    def backward(ctx, l_out, l_g):
+        a, w1, w2, s, h, u = ctx.saved_tensors
+        beta = ctx.beta
+        p = l_g @ w1.t()                                     # [N, H]
+        # s' = beta s (1 - s); on softplus's linear branch s = 1, so s' = 0 there as in autograd
+        ds = (1.0 - s).mul_(p).mul_(w2[0] * beta)
+        dz = torch.addmm(ds, l_out, w2).mul_(s)              # (L_out W2 + beta P w (1 - s)) * s
+        grad_a = dz @ w1 if ctx.needs_input_grad[0] else None
+        grad_w1 = torch.addmm(dz.t() @ a, u.t(), l_g)
+        grad_b1 = dz.sum(0)
+        grad_w2 = l_out.t() @ h
+        grad_w2[0] += (p * s).sum(0)
+        grad_b2 = l_out.sum(0)
+        return grad_a, grad_w1, grad_b1, grad_w2, grad_b2, None, None
+
+
+def fusable(net: nn.Sequential) -> bool:
+    """True for the shape this node handles: Linear, Softplus, Linear (``sdf_layers: 1``)."""
+    return (len(net) == 3 and isinstance(net[0], nn.Linear) and isinstance(net[1], nn.Softplus)
+            and isinstance(net[2], nn.Linear))
+
+
+def mlp_and_input_grad(net: nn.Sequential, a: torch.Tensor):
+    """Output of a Linear-Softplus-Linear ``net`` and d out[:, 0] / d a, differentiable.
+
+    Args:
+        net: a module for which :func:`fusable` holds.
+        a: [N, D] inputs.
+    Returns:
+        out [N, O] and g [N, D], both with first-order gradients to ``a`` and the weights.
+    """
+    l1, act, l2 = net[0], net[1], net[2]
+    return _SoftplusMLPWithGrad.apply(a, l1.weight, l1.bias, l2.weight, l2.bias, float(act.beta),
+                                      float(act.threshold))
