@@ -43,6 +43,7 @@ def test_ray_count_and_capacity_stay_put_under_jitter():
 
     class _T:  # what _key reads of a trainer
         cfg = load_config("cpu-quick")
+        field = type("F", (), {"all_levels": staticmethod(lambda: True)})
 
         @staticmethod
         def photo_priors(p):
@@ -159,8 +160,9 @@ def test_cuda_replayed_graph_matches_the_eager_step(tmp_path):
     a, b = _pair(scene_on(None, tmp_path, "cuda"), tmp_path, "cuda")
     a.field._dev_sched = False  # StepGraphs switches it on
     graphs = StepGraphs(a)
-    p = 0.5
-    for i in range(4):
+    # coarse-to-fine still on (the level mask recorded in the graph), then over (no mask): a
+    # graph of each kind is captured and replayed, never one for the other
+    for i, p in enumerate([0.02] * 3 + [0.5] * 4):
         batch, xr, smp = _inputs(b, p)
         a.field.set_progress(p)
         a._set_lr(p)
@@ -168,7 +170,9 @@ def test_cuda_replayed_graph_matches_the_eager_step(tmp_path):
         ra = graphs.step(a, batch, xr, smp, p)
         torch.testing.assert_close(ra["loss"], rb["loss"], rtol=1e-4, atol=1e-6)
         _close(a, b, f"step {i}")
-    assert graphs.captured >= 1 and graphs.replayed >= 1, graphs.summary()
+        assert a.field.all_levels() == (p == 0.5)
+    assert graphs.captured >= 2 and graphs.replayed >= 2, graphs.summary()
+    assert {k[-1] for k in graphs.cache} == {False, True}
     assert graphs.enabled
 
 
@@ -236,6 +240,7 @@ def test_a_key_is_captured_only_when_the_next_step_repeats_it():
 
     class _T:
         cfg = load_config("cpu-quick")
+        field = type("F", (), {"all_levels": staticmethod(lambda: True)})
 
         @staticmethod
         def photo_priors(p):

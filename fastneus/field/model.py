@@ -136,16 +136,22 @@ class SDFField(nn.Module):
             self._floor_t.fill_(max(1e-3, self.inv_s_floor))
             self._levels_t.fill_(self.active_levels)
 
+    def all_levels(self) -> bool:
+        """Whether every hash level is active (coarse-to-fine is over). A captured step records
+        the level mask's multiplications only before that (graphstep keys on this): after it
+        they would multiply by ones, ~0.4 ms of elementwise passes per step at 2^18 samples."""
+        return self.active_levels >= self.hashgrid.levels
+
     def _encode(self, u: torch.Tensor) -> torch.Tensor:
         """[N, L*F] hash features of u in [0, 1]^3 at the active levels (zero above them)."""
-        if not self._dev_sched:
+        if not self._dev_sched or self.all_levels():
             return self.encode(u, self.table, self.grid_cfg, self.active_levels)
         feats = self.encode(u, self.table, self.grid_cfg, self.hashgrid.levels)
         return feats * (self._feat_level < self._levels_t).to(feats.dtype)
 
     def _encode_jac(self, u: torch.Tensor):
         """Features [N, L*F] and d feats / d u [N, L*F, 3] at the active levels (zero above them)."""
-        if not self._dev_sched:
+        if not self._dev_sched or self.all_levels():
             return self.encode_jac(u, self.table, self.grid_cfg, self.active_levels)
         feats, jac = self.encode_jac(u, self.table, self.grid_cfg, self.hashgrid.levels)
         m = (self._feat_level < self._levels_t).to(feats.dtype)
