@@ -43,9 +43,14 @@ def test_outputs_and_gradients_match_autograd(device, seed):
         for p in net.parameters():
             p.grad = None
         ai = a.clone().requires_grad_()
-        out, g = mlp_and_input_grad(net, ai) if fused else _reference(net, ai)
+        if fused:  # as the field calls it: position and hash-feature blocks, no concatenation
+            ax, af = ai[:, :3].detach().requires_grad_(), ai[:, 3:].detach().requires_grad_()
+            out, g = mlp_and_input_grad(net, ax, af)
+        else:
+            out, g = _reference(net, ai)
         ((out * up_out).sum() + (g * up_g).sum()).backward()
-        results.append([out.detach(), g.detach(), ai.grad] + [p.grad.clone() for p in net.parameters()])
+        da = torch.cat([ax.grad, af.grad], 1) if fused else ai.grad
+        results.append([out.detach(), g.detach(), da] + [p.grad.clone() for p in net.parameters()])
     names = ["out", "g", "d a", "d W1", "d b1", "d W2", "d b2"]
     for name, x, y in zip(names, *results):
         scale = float(y.abs().max()) + 1e-12
@@ -60,7 +65,7 @@ def test_gradcheck_float64(device):
     params = [p.detach().clone().requires_grad_() for p in net.parameters()]
 
     def fn(a, w1, b1, w2, b2):
-        return _SoftplusMLPWithGrad.apply(a, w1, b1, w2, b2, 3.0, 20.0)
+        return _SoftplusMLPWithGrad.apply(3.0, w1, b1, w2, b2, a[:, :2], a[:, 2:])
 
     assert torch.autograd.gradcheck(fn, (a, *params), eps=1e-6, atol=1e-6)
 

@@ -230,10 +230,10 @@ class SDFField(nn.Module):
             weights and x (create_graph), ready for the eikonal loss.
         """
         feats, jac = self._encode_jac(((x + 1.0) * 0.5).contiguous())  # [N, L*F], [N, L*F, 3]
-        net_in = torch.cat([x, feats], dim=-1)
         if self.fused_mlp:
-            out, g = mlp_and_input_grad(self.sdf_net, net_in)  # [N, 1+G], [N, 3 + L*F]
+            out, g = mlp_and_input_grad(self.sdf_net, x, feats)  # [N, 1+G], [N, 3 + L*F]
             return out, self.grad_from_jac(g, jac, 0.5)
+        net_in = torch.cat([x, feats], dim=-1)
         if not net_in.requires_grad:  # frozen table and constant x: differentiate the MLP input anyway
             net_in = net_in.detach().requires_grad_()
         out = self.sdf_net(net_in)

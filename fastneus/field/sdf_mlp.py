@@ -31,52 +31,63 @@ import torch.nn.functional as F
 
 class _SoftplusMLPWithGrad(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, a, w1, b1, w2, b2, beta: float, threshold: float):
-        z = torch.addmm(b1, a, w1.t())                       # [N, H]
-        h = F.softplus(z, beta, threshold)
-        # softplus's derivative; above the threshold (softplus's linear branch, derivative 1)
+    def forward(ctx, beta: float, w1, b1, w2, b2, *parts):
+        # the input's column blocks (x, hash features) multiply their slices of W1: no
+        # concatenated [N, D] copy, and each block's gradient comes back contiguous (the hash
+        # Jacobian's backward would copy a strided slice of a concatenated input's gradient)
+        cols, c0 = [], 0
+        for t in parts:
+            cols.append((c0, c0 + t.shape[1]))
+            c0 += t.shape[1]
+        z = torch.addmm(b1, parts[0], w1[:, cols[0][0]:cols[0][1]].t())    # [N, H]
+        for t, (c, d) in zip(parts[1:], cols[1:]):
+            z.addmm_(t, w1[:, c:d].t())
+        h = F.softplus(z, beta)
+        # softplus's derivative; above its threshold (20: the linear branch, derivative 1)
         # sigmoid(beta z) > sigmoid(20) rounds to 1 in float32, so no mask is needed for
         # autograd's values (float64 differs there by < 3e-9)
         s = torch.sigmoid(z * beta)
         out = torch.addmm(b2, h, w2.t())                     # [N, O]
         u = s * w2[0]                                        # [N, H]
         g = u @ w1                                           # [N, D]
-        ctx.save_for_backward(a, w1, w2, s, h, u)
-        ctx.beta = beta
+        ctx.save_for_backward(w1, w2, s, h, u, *parts)
+        ctx.beta, ctx.cols = beta, cols
         return out, g
 
     @staticmethod
     def backward(ctx, l_out, l_g):
-        a, w1, w2, s, h, u = ctx.saved_tensors
+        w1, w2, s, h, u, *parts = ctx.saved_tensors
         beta = ctx.beta
         p = l_g @ w1.t()                                     # [N, H]
         # s' = beta s (1 - s); on softplus's linear branch s = 1, so s' = 0 there as in autograd
         ds = (1.0 - s).mul_(p).mul_(w2[0] * beta)
         dz = torch.addmm(ds, l_out, w2).mul_(s)              # (L_out W2 + beta P w (1 - s)) * s
-        grad_a = dz @ w1 if ctx.needs_input_grad[0] else None
-        grad_w1 = torch.addmm(dz.t() @ a, u.t(), l_g)
+        grad_parts = [dz @ w1[:, c:d] if ctx.needs_input_grad[5 + i] else None
+                      for i, (c, d) in enumerate(ctx.cols)]
+        grad_w1 = torch.cat([dz.t() @ t for t in parts], 1).addmm_(u.t(), l_g)
         grad_b1 = dz.sum(0)
         grad_w2 = l_out.t() @ h
         grad_w2[0] += (p * s).sum(0)
         grad_b2 = l_out.sum(0)
-        return grad_a, grad_w1, grad_b1, grad_w2, grad_b2, None, None
+        return None, grad_w1, grad_b1, grad_w2, grad_b2, *grad_parts
 
 
 def fusable(net: nn.Sequential) -> bool:
     """True for the shape this node handles: Linear, Softplus, Linear (``sdf_layers: 1``)."""
     return (len(net) == 3 and isinstance(net[0], nn.Linear) and isinstance(net[1], nn.Softplus)
-            and isinstance(net[2], nn.Linear))
+            and isinstance(net[2], nn.Linear) and net[1].threshold == 20)
 
 
-def mlp_and_input_grad(net: nn.Sequential, a: torch.Tensor):
-    """Output of a Linear-Softplus-Linear ``net`` and d out[:, 0] / d a, differentiable.
+def mlp_and_input_grad(net: nn.Sequential, *parts: torch.Tensor):
+    """Output of a Linear-Softplus-Linear ``net`` and d out[:, 0] / d input, differentiable.
 
     Args:
         net: a module for which :func:`fusable` holds.
-        a: [N, D] inputs.
+        parts: the input's column blocks ([N, D1], [N, D2], ...; D1 + D2 + ... = D), as if
+            concatenated (``net(torch.cat(parts, -1))``) but without the copy.
     Returns:
-        out [N, O] and g [N, D], both with first-order gradients to ``a`` and the weights.
+        out [N, O] and g [N, D] (the gradient for the concatenated input), both with
+        first-order gradients to every part and the weights.
     """
     l1, act, l2 = net[0], net[1], net[2]
-    return _SoftplusMLPWithGrad.apply(a, l1.weight, l1.bias, l2.weight, l2.bias, float(act.beta),
-                                      float(act.threshold))
+    return _SoftplusMLPWithGrad.apply(float(act.beta), l1.weight, l1.bias, l2.weight, l2.bias, *parts)
