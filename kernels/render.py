@@ -243,7 +243,8 @@ def _render_fwd(
     offsets: wp.array(dtype=wp.int32), counts: wp.array(dtype=wp.int32), dirs: wp.array(dtype=wp.vec3),
     ray_frame: wp.array(dtype=wp.int32), K: wp.array2d(dtype=wp.mat33), W: wp.array2d(dtype=mat34),
     proj_pattern: wp.array2d(dtype=wp.int32), pat: wp.array(dtype=wp.uint8), meta: wp.array(dtype=wp.vec3i),
-    inv_s: wp.array(dtype=float), cos_anneal: float, i_r: wp.array(dtype=float), i_b: wp.array(dtype=float),
+    inv_s: wp.array(dtype=float), cos_anneal: wp.array(dtype=float), i_r: wp.array(dtype=float),
+    i_b: wp.array(dtype=float),
     write_weights: int, q_ext: wp.array(dtype=wp.vec3), use_qext: int,
     out_color: wp.array(dtype=wp.vec3), out_opacity: wp.array(dtype=float), out_depth: wp.array(dtype=float),
     out_texture: wp.array(dtype=wp.vec3), out_weights: wp.array(dtype=float), out_trans: wp.array(dtype=float),
@@ -265,7 +266,7 @@ def _render_fwd(
     for i in range(start, start + n):
         a0 = t0[i]
         a1 = t1[i]
-        ic = _iter_cos(wp.dot(d, grad[i]), cos_anneal)
+        ic = _iter_cos(wp.dot(d, grad[i]), cos_anneal[0])
         alpha = wp.clamp(_raw_alpha(sdf[i], ic, a1 - a0, s), 0.0, 0.9999)
         w = T * alpha
         D = col[i]
@@ -296,7 +297,8 @@ def _render_bwd(
     offsets: wp.array(dtype=wp.int32), counts: wp.array(dtype=wp.int32), dirs: wp.array(dtype=wp.vec3),
     ray_frame: wp.array(dtype=wp.int32), K: wp.array2d(dtype=wp.mat33), W: wp.array2d(dtype=mat34),
     proj_pattern: wp.array2d(dtype=wp.int32), pat: wp.array(dtype=wp.uint8), meta: wp.array(dtype=wp.vec3i),
-    inv_s: wp.array(dtype=float), cos_anneal: float, i_r: wp.array(dtype=float), i_b: wp.array(dtype=float),
+    inv_s: wp.array(dtype=float), cos_anneal: wp.array(dtype=float), i_r: wp.array(dtype=float),
+    i_b: wp.array(dtype=float),
     # the forward's per-sample transmittance and the upstream gradients
     trans: wp.array(dtype=float), q_ext: wp.array(dtype=wp.vec3), use_qext: int, need_qext: int,
     g_color: wp.array(dtype=wp.vec3), g_opacity: wp.array(dtype=float), g_depth: wp.array(dtype=float),
@@ -320,7 +322,7 @@ def _render_bwd(
     s = inv_s[0]
     ir = i_r[0]
     ib = i_b[0]
-    a = cos_anneal
+    a = cos_anneal[0]
     gc = g_color[r]
     go = g_opacity[r]
     gd = g_depth[r]
@@ -466,6 +468,9 @@ class _RenderPattern(torch.autograd.Function):
                 t0, t1, offsets, counts, dirs, ray_frame, proj_K, proj_pattern, pat_buf, pat_meta,
                 cos_anneal, return_weights):
         ref = sdf
+        # the ratio as a [1] device array: a captured step reads it at replay (the ramp's steps
+        # replay one graph instead of running eagerly)
+        cos_anneal = _param(cos_anneal, ref).float()
         R, S = offsets.shape[0], sdf.shape[0]
         out_color = torch.empty((R, 3), dtype=torch.float32, device=ref.device)
         out_opacity = torch.empty((R,), dtype=torch.float32, device=ref.device)
@@ -479,7 +484,7 @@ class _RenderPattern(torch.autograd.Function):
             _wp(t0), _wp(t1), _wp(offsets), _wp(counts),
             _wp(dirs, wp.vec3), _wp(ray_frame), _wp(proj_K, wp.mat33),
             _wp(proj_W, mat34), _wp(proj_pattern), _wp(pat_buf),
-            _wp(pat_meta, wp.vec3i), _wp(inv_s), float(cos_anneal), _wp(i_r),
+            _wp(pat_meta, wp.vec3i), _wp(inv_s), _wp(cos_anneal), _wp(i_r),
             _wp(i_b),
         ]
         use_q = q_ext is not None
@@ -495,16 +500,15 @@ class _RenderPattern(torch.autograd.Function):
         _warp.launch_chunked(_render_fwd, inputs, outputs, ref, _warp.ray_ranges(offsets, S, ref, MIN_CHUNK_SAMPLES),
                              sliced_in=per_ray_in, sliced_out=per_ray_out)
         ctx.save_for_backward(sdf, grad, color, pos, inv_s, i_r, i_b, proj_W, q_arr, t0, t1, offsets, counts, dirs,
-                              ray_frame, proj_K, proj_pattern, pat_buf, pat_meta, trans)
+                              ray_frame, proj_K, proj_pattern, pat_buf, pat_meta, trans, cos_anneal)
         ctx.use_q = use_q
-        ctx.cos_anneal = float(cos_anneal)
         ctx.mark_non_differentiable(weights)
         return out_color, out_opacity, out_depth, out_texture, weights
 
     @staticmethod
     def backward(ctx, g_color, g_opacity, g_depth, g_texture, _g_weights):
         (sdf, grad, color, pos, inv_s, i_r, i_b, proj_W, q_arr, t0, t1, offsets, counts, dirs, ray_frame, proj_K,
-         proj_pattern, pat_buf, pat_meta, trans) = ctx.saved_tensors
+         proj_pattern, pat_buf, pat_meta, trans, cos_anneal) = ctx.saved_tensors
         needs = ctx.needs_input_grad[:9]
         if not any(needs):
             return (None,) * 21
@@ -525,7 +529,7 @@ class _RenderPattern(torch.autograd.Function):
             _wp(t0), _wp(t1), _wp(offsets), _wp(counts),
             _wp(dirs, wp.vec3), _wp(ray_frame), _wp(proj_K, wp.mat33),
             _wp(proj_W, mat34), _wp(proj_pattern), _wp(pat_buf),
-            _wp(pat_meta, wp.vec3i), _wp(inv_s), ctx.cos_anneal, _wp(i_r),
+            _wp(pat_meta, wp.vec3i), _wp(inv_s), _wp(cos_anneal), _wp(i_r),
             _wp(i_b),
             _wp(trans), _wp(q_arr, wp.vec3), int(ctx.use_q), int(needs[8]),
             _wp(g_color, wp.vec3), _wp(g_opacity), _wp(g_depth), _wp(g_texture, wp.vec3),
@@ -583,7 +587,7 @@ def render_pattern(
     proj_pattern: torch.Tensor,  # [F, P] int32, index into patterns, -1 = projector off
     patterns: PatternStore,
     inv_s: torch.Tensor,  # [1] float32
-    cos_anneal: float,
+    cos_anneal: float | torch.Tensor,
     i_r: torch.Tensor,  # [1] float32
     i_b: torch.Tensor,  # [1] float32
     return_weights: bool = False,
@@ -604,7 +608,8 @@ def render_pattern(
         proj_K, proj_W, proj_pattern: per (frame, projector) intrinsics, world(normalised)->
             projector transform and pattern index (-1 = off).
         patterns: PatternStore on the samples' device.
-        inv_s: NeuS sharpness s. cos_anneal: anneal ratio in [0, 1].
+        inv_s: NeuS sharpness s. cos_anneal: anneal ratio in [0, 1], a float or a [1] tensor on
+            the device (what a captured step reads at replay).
         i_r, i_b: reflectance and bias of the projected light (used as given; keep them >= 0).
         return_weights: also return per-sample weights w_i (not differentiable).
         q_ext: when given, the projected light Q per sample is taken from it (differentiable)
@@ -622,7 +627,7 @@ def render_pattern(
         _f32(sdf), _f32(grad), _f32(color), _f32(pos), _f32(_param(inv_s, sdf)), _f32(_param(i_r, sdf)),
         _f32(_param(i_b, sdf)), _f32(proj_W), None if q_ext is None else _f32(q_ext),
         _f32(t0), _f32(t1), _i32(offsets), _i32(counts), _f32(dirs), _i32(ray_frame), _f32(proj_K),
-        _i32(proj_pattern), patterns.buffer.contiguous(), _i32(meta), float(cos_anneal), bool(return_weights))
+        _i32(proj_pattern), patterns.buffer.contiguous(), _i32(meta), cos_anneal, bool(return_weights))
     res = dict(color=out[0], opacity=out[1], depth=out[2], texture=out[3])
     if return_weights:
         res["weights"] = out[4]
@@ -697,7 +702,7 @@ def render_pattern_torch(
     proj_pattern: torch.Tensor,  # [F, P] int32
     patterns: PatternStore,
     inv_s: torch.Tensor,  # [1]
-    cos_anneal: float,
+    cos_anneal: float | torch.Tensor,
     i_r: torch.Tensor,  # [1]
     i_b: torch.Tensor,  # [1]
     return_weights: bool = False,
@@ -718,7 +723,7 @@ def render_pattern_torch(
     inv_s, i_r, i_b = (_param(x, sdf).to(dtype) for x in (inv_s, i_r, i_b))
     d = dirs.to(dtype)[ri]
     cos = (d * grad).sum(-1)
-    a = float(cos_anneal)
+    a = _param(cos_anneal, sdf).to(dtype)
     ic = -(torch.relu(-cos * 0.5 + 0.5) * (1.0 - a) + torch.relu(-cos) * a)
     dt = t1 - t0
     prev = sdf - ic * dt * 0.5

@@ -161,8 +161,9 @@ def test_cuda_replayed_graph_matches_the_eager_step(tmp_path):
     a.field._dev_sched = False  # StepGraphs switches it on
     graphs = StepGraphs(a)
     # coarse-to-fine still on (the level mask recorded in the graph), then over (no mask): a
-    # graph of each kind is captured and replayed, never one for the other
-    for i, p in enumerate([0.02] * 3 + [0.5] * 4):
+    # graph of each kind is captured and replayed, never one for the other; the first steps are
+    # in the NeuS cos-anneal ramp (its ratio read from the device at replay, changing per step)
+    for i, p in enumerate([0.02, 0.04, 0.06, 0.08] + [0.5] * 4):
         batch, xr, smp = _inputs(b, p)
         a.field.set_progress(p)
         a._set_lr(p)
@@ -171,6 +172,7 @@ def test_cuda_replayed_graph_matches_the_eager_step(tmp_path):
         torch.testing.assert_close(ra["loss"], rb["loss"], rtol=1e-4, atol=1e-6)
         _close(a, b, f"step {i}")
         assert a.field.all_levels() == (p == 0.5)
+        assert p == 0.5 or float(a.cos_dev) == pytest.approx(a.cos_anneal(p)) < 1.0
     assert graphs.captured >= 2 and graphs.replayed >= 2, graphs.summary()
     assert {k[-1] for k in graphs.cache} == {False, True}
     assert graphs.enabled
@@ -241,6 +243,11 @@ def test_a_key_is_captured_only_when_the_next_step_repeats_it():
     class _T:
         cfg = load_config("cpu-quick")
         field = type("F", (), {"all_levels": staticmethod(lambda: True)})
+        cos_dev = torch.ones(1)
+
+        @staticmethod
+        def cos_anneal(p):
+            return 1.0
 
         @staticmethod
         def photo_priors(p):

@@ -347,3 +347,24 @@ def test_pattern_store():
     assert store.to("cpu") is store
     with pytest.raises(ValueError, match="uint8"):
         PatternStore([np.zeros((2, 2, 3), np.float32)])
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_cos_anneal_as_device_tensor_is_the_float(device):
+    """The cos-anneal ratio given as a [1] tensor (what a captured step reads at replay) gives
+    the op and its twin the same outputs and gradients as the same ratio given as a float."""
+    seed = _seed()
+    inp = make_inputs(64, 3, 4, 24, seed, device)
+    a = float(torch.rand(1, generator=torch.Generator().manual_seed(seed)))
+    for op in (render_pattern, render_pattern_torch):
+        res = []
+        for ca in (a, torch.tensor([a], device=device)):
+            w = _with_grad(dict(inp, cos_anneal=ca))
+            out = op(**w)
+            ups = {k: torch.randn(out[k].shape, generator=torch.Generator().manual_seed(seed + 1)).to(device)
+                   for k in OUTS}
+            res.append(([out[k] for k in OUTS], _grads(out, ups, w)))
+        for x, y in zip(res[0][0], res[1][0]):
+            assert torch.equal(x, y), (op.__name__, seed)
+        for k in DIFF:
+            assert torch.equal(res[0][1][k], res[1][1][k]), (op.__name__, k, seed)

@@ -162,7 +162,7 @@ def shade_samples(field, smp: dict, proj, origins: torch.Tensor, dirs: torch.Ten
         f = shots[:, k].contiguous()
         q = light(f)
         out = render(sdf, grad, color, pos, t0, t1, ray_index, offsets, counts, dirs, f,
-                     proj.K, proj.W, pat, proj.store, field.inv_s(), float(cos_anneal), i_r, i_b,
+                     proj.K, proj.W, pat, proj.store, field.inv_s(), cos_anneal, i_r, i_b,
                      return_weights=(with_normals or lit) and k == 0, q_ext=q)
         if k == 0:
             res = dict(out)

@@ -12,8 +12,8 @@ and replayed as one graph launch, given that
   means (padded samples belong to no ray, so compositing never sees them);
 - the values that change from step to step are on the device: the learning rates and bias
   corrections (``Adam.prepare_device_step``), the sharpness floor and the number of active hash
-  levels (``SDFField.enable_device_schedule``);
-- nothing else changes: steps in the NeuS cos-anneal ramp, the background prior's ramp-in,
+  levels (``SDFField.enable_device_schedule``), the NeuS cos-anneal ratio (``Trainer.cos_dev``);
+- nothing else changes: steps in the background prior's ramp-in,
   with the fading surface prior, pose / blur / water corrections, or a step count that differs
   inside a parameter group run eagerly (:meth:`StepGraphs.eligible`).
 
@@ -114,12 +114,12 @@ class StepGraphs:
         self.captured = self.replayed = self.eager = self.evicted = 0
         self.captures: list[dict] = []  # each capture's step, key sizes and host seconds (run.json)
         trainer.field.enable_device_schedule()
+        trainer.cos_dev = torch.ones((1,), device=self.device)  # the NeuS cos-anneal ratio, filled per step
 
     def eligible(self, tr, p: float) -> bool:
         """Whether this step's compute part is the same graph as any other step's with its key."""
         c = tr.cfg
         ok = (self.enabled and not tr.rig.active and isinstance(tr.bank, RayBank)
-              and tr.cos_anneal(p) >= 1.0
               and not (tr.prior is not None and p < c.init.prior_frac)
               and not (tr.photo_priors(p)[0] and losses.background_ramp(p, c.loss.bg_start_frac) < 1.0)
               # the curvature taps' and finite differences' step follows the finest active level
@@ -155,6 +155,7 @@ class StepGraphs:
 
     def step(self, tr, batch: dict, xr: torch.Tensor, smp: dict, p: float) -> dict | None:
         """Run this step's compute part: replay its graph, or run it eagerly and capture it."""
+        tr.cos_dev.fill_(tr.cos_anneal(p))  # read at replay (a fill: no host sync)
         capacity = self._capacity(tr, batch, smp["n_samples"], p)
         key = self._key(tr, batch, capacity, p)
         e = self.cache.get(key)

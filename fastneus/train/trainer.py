@@ -253,6 +253,7 @@ class Trainer:
                                 field="rays.camera_blur")
         # CUDA: the step after marching replayed as a captured graph (fastneus.train.graphstep)
         self.graphs = None
+        self.cos_dev: torch.Tensor | None = None  # [1] cos-anneal ratio on the device (with graphs)
         if self.device.type == "cuda" and cfg.run.cuda_graph != "off":
             from fastneus.train.graphstep import StepGraphs
 
@@ -574,8 +575,13 @@ class Trainer:
         i_r, i_b = self.illumination()
         bg_on, fg_on = self.photo_priors(p)  # both off when masks are used
         bg_on = bg_on and "bg" in batch
+        cos = self.cos_anneal(p)
+        if self.cos_dev is not None:  # captured steps read the ratio from the device (StepGraphs)
+            if not torch.cuda.is_current_stream_capturing():
+                self.cos_dev.fill_(cos)
+            cos = self.cos_dev
         out = shade_samples(self.field, smp, self.rig.projection(), batch["origins"], batch["dirs"], batch["fidx"], c,
-                            i_r=i_r, i_b=i_b, cos_anneal=self.cos_anneal(p), curvature=c.loss.curvature_weight > 0,
+                            i_r=i_r, i_b=i_b, cos_anneal=cos, curvature=c.loss.curvature_weight > 0,
                             extra_points=xr, lit=bg_on and self.bg_lit)
         # the camera clips at 1: a rendered value above it is a saturated pixel, not an error
         # (unclipped, bright pattern pixels would pull i_r down on Normal-light scenes)
