@@ -364,7 +364,10 @@ def test_cos_anneal_as_device_tensor_is_the_float(device):
             ups = {k: torch.randn(out[k].shape, generator=torch.Generator().manual_seed(seed + 1)).to(device)
                    for k in OUTS}
             res.append(([out[k] for k in OUTS], _grads(out, ups, w)))
+        # the Warp op reads the same [1] array either way: bit for bit; the twin multiplies by a
+        # Python scalar or by a tensor, which CUDA may round differently in the last bit
+        same = torch.equal if op is render_pattern else (lambda x, y: torch.allclose(x, y, rtol=1e-6, atol=1e-9))
         for x, y in zip(res[0][0], res[1][0]):
-            assert torch.equal(x, y), (op.__name__, seed)
+            assert same(x, y), (op.__name__, seed)
         for k in DIFF:
-            assert torch.equal(res[0][1][k], res[1][1][k]), (op.__name__, k, seed)
+            assert same(res[0][1][k], res[1][1][k]), (op.__name__, k, seed)
