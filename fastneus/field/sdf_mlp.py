@@ -13,8 +13,13 @@ hand, with the same maths:
     given L_out = dL/d out and L_g = dL/d g:
     P  = L_g W1^T                                  (dL / d(s * w))
     dz = s * (L_out W2 + beta * P * w * (1 - s))   (s' = beta s (1 - s))
-    dL/da = dz W1,  dL/dW1 = dz^T a + (s * w)^T L_g,  dL/db1 = sum dz
-    dL/dW2 = L_out^T h,  dL/dW2[0] += sum_n P * s,  dL/db2 = sum L_out
+    M  = s^T L_g                                   ([H, D])
+    dL/da = dz W1,  dL/dW1 = dz^T a + w * M,  dL/db1 = sum dz
+    dL/dW2 = L_out^T h,  dL/dW2[0] += sum_n P * s = rowsum(W1 * M),  dL/db2 = sum L_out
+
+The output weights w are folded into [H, D] matrices (w W1, beta w W1) before the GEMMs, so no
+[N, H] tensor is ever multiplied by a broadcast row (a non-vectorised kernel on CUDA) and the
+only [N, H] passes are sigmoid, softplus and the three of dz.
 
 Fewer kernels on the GPU (a captured step replays them: fewer passes over [N, H]) and fewer
 autograd nodes and Python on the CPU, where the engine's per-node cost is serial. The backward
@@ -34,40 +39,43 @@ class _SoftplusMLPWithGrad(torch.autograd.Function):
     def forward(ctx, beta: float, w1, b1, w2, b2, *parts):
         # the input's column blocks (x, hash features) multiply their slices of W1: no
         # concatenated [N, D] copy, and each block's gradient comes back contiguous (the hash
-        # Jacobian's backward would copy a strided slice of a concatenated input's gradient)
+        # Jacobian's backward would copy a strided slice of a concatenated input's gradient);
+        # the slices are copied (a few KB) so cuBLAS sees aligned, contiguous weights
         cols, c0 = [], 0
         for t in parts:
             cols.append((c0, c0 + t.shape[1]))
             c0 += t.shape[1]
-        z = torch.addmm(b1, parts[0], w1[:, cols[0][0]:cols[0][1]].t())    # [N, H]
-        for t, (c, d) in zip(parts[1:], cols[1:]):
-            z.addmm_(t, w1[:, c:d].t())
+        w1p = [w1[:, c:d].contiguous() for c, d in cols]
+        z = torch.addmm(b1, parts[0], w1p[0].t())                         # [N, H]
+        for t, w in zip(parts[1:], w1p[1:]):
+            z.addmm_(t, w.t())
         h = F.softplus(z, beta)
         # softplus's derivative; above its threshold (20: the linear branch, derivative 1)
         # sigmoid(beta z) > sigmoid(20) rounds to 1 in float32, so no mask is needed for
         # autograd's values (float64 differs there by < 3e-9)
-        s = torch.sigmoid(z * beta)
+        s = torch.sigmoid(z.mul_(beta))
         out = torch.addmm(b2, h, w2.t())                     # [N, O]
-        u = s * w2[0]                                        # [N, H]
-        g = u @ w1                                           # [N, D]
-        ctx.save_for_backward(w1, w2, s, h, u, *parts)
-        ctx.beta, ctx.cols = beta, cols
+        # g = (s * w) W1 = s (w[:, None] * W1): the output weights folded into a [H, D] matrix, so
+        # no [N, H] broadcast product is made
+        g = s @ (w2[0, :, None] * w1)                        # [N, D]
+        ctx.save_for_backward(w1, w2, s, h, *parts)
+        ctx.beta, ctx.w1p = beta, w1p
         return out, g
 
     @staticmethod
     def backward(ctx, l_out, l_g):
-        w1, w2, s, h, u, *parts = ctx.saved_tensors
-        beta = ctx.beta
-        p = l_g @ w1.t()                                     # [N, H]
+        w1, w2, s, h, *parts = ctx.saved_tensors
+        beta, w1p, w = ctx.beta, ctx.w1p, w2[0]
+        # beta * P * w with P = L_g W1^T, as one GEMM against the scaled weights
+        pwb = l_g @ (w1 * (w * beta)[:, None]).t()           # [N, H]
         # s' = beta s (1 - s); on softplus's linear branch s = 1, so s' = 0 there as in autograd
-        ds = (1.0 - s).mul_(p).mul_(w2[0] * beta)
-        dz = torch.addmm(ds, l_out, w2).mul_(s)              # (L_out W2 + beta P w (1 - s)) * s
-        grad_parts = [dz @ w1[:, c:d] if ctx.needs_input_grad[5 + i] else None
-                      for i, (c, d) in enumerate(ctx.cols)]
-        grad_w1 = torch.cat([dz.t() @ t for t in parts], 1).addmm_(u.t(), l_g)
+        dz = (1.0 - s).mul_(pwb).addmm_(l_out, w2).mul_(s)   # (L_out W2 + beta P w (1 - s)) * s
+        grad_parts = [dz @ wp if ctx.needs_input_grad[5 + i] else None for i, wp in enumerate(w1p)]
+        m = s.t() @ l_g                                      # [H, D] = sum_n s_n L_g,n^T
+        grad_w1 = torch.cat([dz.t() @ t for t in parts], 1).add_(m * w[:, None])  # + (s w)^T L_g
         grad_b1 = dz.sum(0)
         grad_w2 = l_out.t() @ h
-        grad_w2[0] += (p * s).sum(0)
+        grad_w2[0] += (m * w1).sum(1)                        # sum_n P * s = rowsum(W1 * s^T L_g)
         grad_b2 = l_out.sum(0)
         return None, grad_w1, grad_b1, grad_w2, grad_b2, *grad_parts
 
