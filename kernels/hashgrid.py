@@ -165,6 +165,7 @@ def _hash_fwd_kernel(
     levels: wp.array2d(dtype=wp.int32),  # [L, 2] (res, dense)
     l0: int,  # first level of this launch
     n_lv: int,  # levels of this launch (l0 .. l0 + n_lv - 1, all active)
+    active: wp.array(dtype=wp.int32),  # [1] levels >= active[0] are skipped (a captured step's count)
     T: int,
     F: int,
     out: wp.array2d(dtype=float),  # [N, L*F], zero-initialised
@@ -173,6 +174,8 @@ def _hash_fwd_kernel(
     tid = wp.tid()
     n = tid // n_lv
     l = l0 + tid - n * n_lv
+    if l >= active[0]:
+        return  # inactive level: outputs stay 0, no gradient
     res = levels[l, 0]
     dense = levels[l, 1]
     r1 = res + 1
@@ -197,6 +200,7 @@ def _hash_bwd_kernel(
     levels: wp.array2d(dtype=wp.int32),  # [L, 2] (res, dense)
     l0: int,  # first level of this launch
     n_lv: int,  # levels of this launch
+    active: wp.array(dtype=wp.int32),  # [1] levels >= active[0] are skipped (a captured step's count)
     T: int,
     F: int,
     grad_out: wp.array2d(dtype=float),  # [N, L*F]
@@ -210,6 +214,8 @@ def _hash_bwd_kernel(
     tid = wp.tid()
     n = tid // n_lv
     l = l0 + tid - n * n_lv
+    if l >= active[0]:
+        return  # inactive level: outputs stay 0, no gradient
     res = levels[l, 0]
     dense = levels[l, 1]
     r1 = res + 1
@@ -290,6 +296,7 @@ def _hash_jac_fwd_kernel(
     levels: wp.array2d(dtype=wp.int32),  # [L, 2] (res, dense)
     l0: int,  # first level of this launch
     n_lv: int,  # levels of this launch (l0 .. l0 + n_lv - 1, all active)
+    active: wp.array(dtype=wp.int32),  # [1] levels >= active[0] are skipped (a captured step's count)
     T: int,
     F: int,
     out: wp.array2d(dtype=float),  # [N, L*F], zero-initialised
@@ -300,6 +307,8 @@ def _hash_jac_fwd_kernel(
     tid = wp.tid()
     n = tid // n_lv
     l = l0 + tid - n * n_lv
+    if l >= active[0]:
+        return  # inactive level: outputs stay 0, no gradient
     res = levels[l, 0]
     dense = levels[l, 1]
     r1 = res + 1
@@ -342,6 +351,7 @@ def _hash_jac_bwd_kernel(
     levels: wp.array2d(dtype=wp.int32),  # [L, 2] (res, dense)
     l0: int,  # first level of this launch
     n_lv: int,  # levels of this launch
+    active: wp.array(dtype=wp.int32),  # [1] levels >= active[0] are skipped (a captured step's count)
     T: int,
     F: int,
     grad_out: wp.array2d(dtype=float),  # [N, L*F] dL/dfeats (unused if not has_gout)
@@ -358,6 +368,8 @@ def _hash_jac_bwd_kernel(
     tid = wp.tid()
     n = tid // n_lv
     l = l0 + tid - n * n_lv
+    if l >= active[0]:
+        return  # inactive level: outputs stay 0, no gradient
     res = levels[l, 0]
     dense = levels[l, 1]
     r1 = res + 1
@@ -437,10 +449,34 @@ def _level_table(cfg: HashGridConfig, device: torch.device) -> torch.Tensor:
     return t
 
 
-def _n_active(cfg: HashGridConfig, active_levels: int | None) -> int:
+def _n_active(cfg: HashGridConfig, active_levels) -> int:
     if active_levels is None:
         return cfg.levels
     return max(0, min(int(active_levels), cfg.levels))
+
+
+_const_cache: dict = {}
+
+
+def _active_args(cfg: HashGridConfig, active_levels, device) -> tuple[int, torch.Tensor]:
+    """(levels to launch, [1] int32 device count the kernels skip levels at or above).
+
+    ``active_levels`` may be an int (or None: all) or a [1] / 0-d integer tensor on ``device``:
+    on CUDA the kernels read it at run time (all levels are launched and the inactive ones exit
+    at once, so a captured graph follows the count); on the CPU it is read here.
+    """
+    if isinstance(active_levels, torch.Tensor):
+        if active_levels.device.type != "cuda":
+            active_levels = int(active_levels)
+        else:
+            t = active_levels.reshape(1)
+            return cfg.levels, t if t.dtype == torch.int32 else t.to(torch.int32)
+    n = _n_active(cfg, active_levels)
+    key = (n, str(device))
+    t = _const_cache.get(key)
+    if t is None:
+        t = _const_cache[key] = torch.full((1,), n, dtype=torch.int32, device=device)
+    return n, t
 
 
 def _check(u: torch.Tensor, table: torch.Tensor, cfg: HashGridConfig, op: str = "hash_encode") -> None:
@@ -455,7 +491,7 @@ def _check(u: torch.Tensor, table: torch.Tensor, cfg: HashGridConfig, op: str = 
 
 class _HashEncode(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, u, table, cfg, n_active):
+    def forward(ctx, u, table, cfg, n_active, active):
         N = u.shape[0]
         L, T, F = cfg.levels, cfg.table_size, cfg.features
         u_c = u.detach().contiguous()
@@ -464,16 +500,17 @@ class _HashEncode(torch.autograd.Function):
         out = torch.zeros((N, L * F), dtype=torch.float32, device=u.device)
         if N > 0 and n_active > 0:
             t_wp, lv_wp = to_wp(t_c.view(-1), ctype=True), to_wp(levels, ctype=True)
+            act_wp = to_wp(active, ctype=True)
 
             def fwd(a: int, b: int):
                 # rows a..b of u and out: every thread writes only its own point's row
-                inp = [to_wp(u_c[a:b], dtype=wp.vec3, ctype=True), t_wp, lv_wp, 0, n_active, T, F]
+                inp = [to_wp(u_c[a:b], dtype=wp.vec3, ctype=True), t_wp, lv_wp, 0, n_active, act_wp, T, F]
                 outp = [to_wp(out[a:b], ctype=True)]
                 return lambda: launch(_hash_fwd_kernel, (b - a) * n_active, inp, ref=u, outputs=outp)
 
             ranges = _warp.split(N, _warp.n_chunks(N * n_active, u, _MIN_CHUNK_WORK))
             _warp.run_tasks([fwd(a, b) for a, b in ranges], key=_hash_fwd_kernel)
-        ctx.save_for_backward(u_c, t_c)
+        ctx.save_for_backward(u_c, t_c, active)
         ctx.cfg = cfg
         ctx.n_active = n_active
         return out
@@ -481,7 +518,7 @@ class _HashEncode(torch.autograd.Function):
     @staticmethod
     @torch.autograd.function.once_differentiable
     def backward(ctx, grad_out):
-        u_c, t_c = ctx.saved_tensors
+        u_c, t_c, active = ctx.saved_tensors
         cfg, n_active = ctx.cfg, ctx.n_active
         need_u, need_table = ctx.needs_input_grad[0], ctx.needs_input_grad[1]
         N = u_c.shape[0]
@@ -491,11 +528,12 @@ class _HashEncode(torch.autograd.Function):
             go = grad_out.contiguous()
             if go.dtype != torch.float32:
                 go = go.float()
-            _backward_launches(u_c, t_c, go, cfg, n_active, grad_table, grad_u)
-        return grad_u, grad_table, None, None
+            _backward_launches(u_c, t_c, go, cfg, n_active, active, grad_table, grad_u)
+        return grad_u, grad_table, None, None, None
 
 
-def _backward_launches(u_c, t_c, go, cfg: HashGridConfig, n_active: int, grad_table, grad_u) -> None:
+def _backward_launches(u_c, t_c, go, cfg: HashGridConfig, n_active: int, active: torch.Tensor, grad_table,
+                       grad_u) -> None:
     """Launch the backward over (level group x point range) chunks on the CPU threads.
 
     Chunks of different level groups write disjoint parts of the table gradient; chunks of
@@ -521,14 +559,15 @@ def _backward_launches(u_c, t_c, go, cfg: HashGridConfig, n_active: int, grad_ta
     gu_bufs = [grad_u if need_u else dummy_vec] + [
         torch.zeros_like(grad_u) if need_u else dummy_vec for _ in level_groups[1:]]
     t_wp, lv_wp = to_wp(t_c.view(-1), ctype=True), to_wp(_level_table(cfg, dev), ctype=True)
+    act_wp = to_wp(active, ctype=True)
     gt_wp = [to_wp(b, ctype=True) for b in gt_bufs]
 
     def task(g: int, p: int):
         (l0, l1), (a, b) = level_groups[g], point_ranges[p]
         gu = gu_bufs[g]
         gu_wp = to_wp(gu[a:b] if need_u else gu, dtype=wp.vec3, ctype=True)
-        inp = [to_wp(u_c[a:b], dtype=wp.vec3, ctype=True), t_wp, lv_wp, l0, l1 - l0, cfg.table_size, cfg.features,
-               to_wp(go[a:b], ctype=True), int(need_table), int(need_u)]
+        inp = [to_wp(u_c[a:b], dtype=wp.vec3, ctype=True), t_wp, lv_wp, l0, l1 - l0, act_wp, cfg.table_size,
+               cfg.features, to_wp(go[a:b], ctype=True), int(need_table), int(need_u)]
         return lambda: launch(_hash_bwd_kernel, (b - a) * (l1 - l0), inp, ref=u_c, outputs=[gt_wp[p], gu_wp])
 
     _warp.run_tasks([task(g, p) for p in range(len(point_ranges)) for g in range(len(level_groups))],
@@ -556,7 +595,9 @@ def hash_encode(
             gradient where the clamp is active).
         table: [L, T, F] float32 feature table.
         cfg: grid configuration (L, T, F must match the table).
-        active_levels: levels >= this output zeros and get no gradient (None = all).
+        active_levels: levels >= this output zeros and get no gradient (None = all); an int or a
+            [1] integer tensor on u's device (read by the kernels when they run, so a captured
+            CUDA graph follows the count it holds at replay).
 
     Returns:
         feats: [N, L*F] float32, level-major (level l in columns l*F .. l*F+F-1).
@@ -566,12 +607,12 @@ def hash_encode(
         raise TypeError(f"hash_encode (warp) needs float32 u and table, got {u.dtype} and {table.dtype}")
     if cfg.levels * cfg.table_size * cfg.features >= 2 ** 31:
         raise ValueError("hash_encode: L*T*F must stay below 2^31 (int32 flat indices)")
-    return _HashEncode.apply(u, table, cfg, _n_active(cfg, active_levels))
+    return _HashEncode.apply(u, table, cfg, *_active_args(cfg, active_levels, u.device))
 
 
 class _HashEncodeJac(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, u, table, cfg, n_active):
+    def forward(ctx, u, table, cfg, n_active, active):
         N = u.shape[0]
         L, T, F = cfg.levels, cfg.table_size, cfg.features
         u_c = u.detach().contiguous()
@@ -581,16 +622,17 @@ class _HashEncodeJac(torch.autograd.Function):
         jac = torch.zeros((N, L * F, 3), dtype=torch.float32, device=u.device)
         if N > 0 and n_active > 0:
             t_wp, lv_wp = to_wp(t_c.view(-1), ctype=True), to_wp(levels, ctype=True)
+            act_wp = to_wp(active, ctype=True)
 
             def fwd(a: int, b: int):
                 # rows a..b of u, out and jac: every thread writes only its own point's rows
-                inp = [to_wp(u_c[a:b], dtype=wp.vec3, ctype=True), t_wp, lv_wp, 0, n_active, T, F]
+                inp = [to_wp(u_c[a:b], dtype=wp.vec3, ctype=True), t_wp, lv_wp, 0, n_active, act_wp, T, F]
                 outp = [to_wp(out[a:b], ctype=True), to_wp(jac[a:b], dtype=wp.vec3, ctype=True)]
                 return lambda: launch(_hash_jac_fwd_kernel, (b - a) * n_active, inp, ref=u, outputs=outp)
 
             ranges = _warp.split(N, _warp.n_chunks(N * n_active, u, _MIN_CHUNK_WORK))
             _warp.run_tasks([fwd(a, b) for a, b in ranges], key=_hash_jac_fwd_kernel)
-        ctx.save_for_backward(u_c, t_c)
+        ctx.save_for_backward(u_c, t_c, active)
         ctx.cfg = cfg
         ctx.n_active = n_active
         ctx.set_materialize_grads(False)  # an unused output (often jac's) costs nothing
@@ -599,7 +641,7 @@ class _HashEncodeJac(torch.autograd.Function):
     @staticmethod
     @torch.autograd.function.once_differentiable
     def backward(ctx, grad_out, grad_jac):
-        u_c, t_c = ctx.saved_tensors
+        u_c, t_c, active = ctx.saved_tensors
         cfg, n_active = ctx.cfg, ctx.n_active
         need_u = ctx.needs_input_grad[0] and grad_out is not None  # dL/du = jac^T dL/dfeats only
         need_table = ctx.needs_input_grad[1] and (grad_out is not None or grad_jac is not None)
@@ -623,20 +665,21 @@ class _HashEncodeJac(torch.autograd.Function):
                                                           for _ in groups[1:]]
             common = [to_wp(u_c, dtype=wp.vec3, ctype=True), to_wp(t_c.view(-1), ctype=True),
                       to_wp(_level_table(cfg, dev), ctype=True)]
+            act_wp = to_wp(active, ctype=True)
             rest = [cfg.table_size, cfg.features, to_wp(go, ctype=True), to_wp(gj, dtype=wp.vec3, ctype=True),
                     int(grad_out is not None), int(grad_jac is not None), int(need_table), int(need_u)]
 
             def bwd(g: int):
                 l0, l1 = groups[g]
                 outp = [gt_wp, to_wp(gu_bufs[g], dtype=wp.vec3, ctype=True)]
-                return lambda: launch(_hash_jac_bwd_kernel, N * (l1 - l0), common + [l0, l1 - l0] + rest,
+                return lambda: launch(_hash_jac_bwd_kernel, N * (l1 - l0), common + [l0, l1 - l0, act_wp] + rest,
                                       ref=u_c, outputs=outp)
 
             _warp.run_tasks([bwd(g) for g in range(len(groups))], key=_hash_jac_bwd_kernel)
             if need_u:
                 for extra in gu_bufs[1:]:
                     grad_u.add_(extra)
-        return grad_u, grad_table, None, None
+        return grad_u, grad_table, None, None, None
 
 
 def hash_encode_jac(
@@ -670,7 +713,8 @@ def hash_encode_jac(
         table: [L, T, F] float32 feature table.
         cfg: grid configuration (L, T, F must match the table).
         active_levels: levels >= this output zeros (features and Jacobian) and get no
-            gradient (None = all).
+            gradient (None = all); an int or a [1] integer tensor on u's device (as in
+            :func:`hash_encode`).
 
     Returns:
         feats: [N, L*F] float32, level-major (as :func:`hash_encode`).
@@ -681,7 +725,7 @@ def hash_encode_jac(
         raise TypeError(f"hash_encode_jac (warp) needs float32 u and table, got {u.dtype} and {table.dtype}")
     if cfg.levels * cfg.table_size * cfg.features >= 2 ** 31:
         raise ValueError("hash_encode_jac: L*T*F must stay below 2^31 (int32 flat indices)")
-    return _HashEncodeJac.apply(u, table, cfg, _n_active(cfg, active_levels))
+    return _HashEncodeJac.apply(u, table, cfg, *_active_args(cfg, active_levels, u.device))
 
 
 # ----------------------------------------------------------------------------- torch twin
@@ -707,6 +751,15 @@ def hash_index_torch(x: torch.Tensor, y: torch.Tensor, z: torch.Tensor, res: int
     return h % T
 
 
+def _level_mask_torch(cfg: HashGridConfig, active_levels, ref: torch.Tensor):
+    """(int levels, [L*F] 0/1 mask or None): a tensor count becomes a mask (the twins' runtime
+    count, multiplied in: the same values and zero gradients as skipping those levels)."""
+    if not isinstance(active_levels, torch.Tensor):
+        return active_levels, None
+    lv = torch.arange(cfg.levels, device=ref.device).repeat_interleave(cfg.features)
+    return None, (lv < active_levels.reshape(1).to(ref.device)).to(ref.dtype)
+
+
 def hash_encode_torch(
     u: torch.Tensor,  # [N, 3] float in [0, 1]^3 (clamped)
     table: torch.Tensor,  # [L, T, F] float
@@ -721,7 +774,7 @@ def hash_encode_torch(
         u: [N, 3] grid coordinates; clamped to [0, 1].
         table: [L, T, F] feature table.
         cfg: grid configuration.
-        active_levels: levels >= this output zeros (None = all).
+        active_levels: levels >= this output zeros (None = all); an int or an integer tensor.
 
     Returns:
         feats: [N, L*F], level-major.
@@ -729,6 +782,7 @@ def hash_encode_torch(
     _check(u, table, cfg)
     N = u.shape[0]
     T, F = cfg.table_size, cfg.features
+    active_levels, mask = _level_mask_torch(cfg, active_levels, u)
     n_active = _n_active(cfg, active_levels)
     uc = u.clamp(0.0, 1.0)
     outs = []
@@ -754,7 +808,7 @@ def hash_encode_torch(
     if n_active == 0:
         # keep the (all-zero) result on the autograd graph so backward() still works
         out = out + (table[:0].sum() + u[:0].sum())
-    return out
+    return out if mask is None else out * mask
 
 
 def hash_encode_jac_torch(
@@ -775,7 +829,7 @@ def hash_encode_jac_torch(
         u: [N, 3] grid coordinates; clamped to [0, 1].
         table: [L, T, F] feature table.
         cfg: grid configuration.
-        active_levels: levels >= this output zeros (None = all).
+        active_levels: levels >= this output zeros (None = all); an int or an integer tensor.
 
     Returns:
         feats: [N, L*F], level-major.
@@ -784,6 +838,7 @@ def hash_encode_jac_torch(
     _check(u, table, cfg, "hash_encode_jac")
     N = u.shape[0]
     T, F = cfg.table_size, cfg.features
+    active_levels, mask = _level_mask_torch(cfg, active_levels, u)
     n_active = _n_active(cfg, active_levels)
     uc = u.clamp(0.0, 1.0)
     inside = ((u >= 0.0) & (u <= 1.0)).to(u.dtype).detach()  # d clamp / d u, per axis
@@ -820,7 +875,7 @@ def hash_encode_jac_torch(
         # keep the (all-zero) results on the autograd graph so backward() still works
         z = table[:0].sum() + u[:0].sum()
         out, jac = out + z, jac + z
-    return out, jac
+    return (out, jac) if mask is None else (out * mask, jac * mask[:, None])
 
 
 # ----------------------------------------------------------------------------- jac contraction

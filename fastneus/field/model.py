@@ -79,7 +79,7 @@ class SDFField(nn.Module):
         self.register_buffer("_tetra", _TETRA.to(device), persistent=False)
         # device-side schedule (a captured CUDA step): see enable_device_schedule
         self._dev_sched = False
-        self._floor_t = self._levels_t = self._feat_level = None
+        self._floor_t = self._levels_t = None
 
     @staticmethod
     def _geometric_init(lin: nn.Linear, first: bool, last: bool, d_in: int, radius: float) -> None:
@@ -120,15 +120,13 @@ class SDFField(nn.Module):
     def enable_device_schedule(self) -> None:
         """Keep the schedule's values where a captured CUDA graph reads them at replay: the
         sharpness floor and the number of active hash levels as device tensors (filled by
-        :meth:`set_progress`), the hash grid evaluated at every level and the inactive levels'
-        features and Jacobian multiplied by 0 (the same values and gradients as evaluating only
-        the active levels; the table entries of inactive levels get exactly zero gradient)."""
+        :meth:`set_progress`); the hash kernels launch every level and read the count when they
+        run (the inactive levels return at once: zero features and Jacobian, no gradient, as
+        when only the active levels are launched)."""
         dev = self.table.device
         self._dev_sched = True
         self._floor_t = torch.zeros((), device=dev)
-        self._levels_t = torch.zeros((), dtype=torch.int32, device=dev)
-        F = self.hashgrid.features
-        self._feat_level = torch.arange(self.hashgrid.levels * F, device=dev, dtype=torch.int32) // F
+        self._levels_t = torch.zeros((1,), dtype=torch.int32, device=dev)
         self._fill_schedule()
 
     def _fill_schedule(self) -> None:
@@ -136,26 +134,19 @@ class SDFField(nn.Module):
             self._floor_t.fill_(max(1e-3, self.inv_s_floor))
             self._levels_t.fill_(self.active_levels)
 
-    def all_levels(self) -> bool:
-        """Whether every hash level is active (coarse-to-fine is over). A captured step records
-        the level mask's multiplications only before that (graphstep keys on this): after it
-        they would multiply by ones, ~0.4 ms of elementwise passes per step at 2^18 samples."""
-        return self.active_levels >= self.hashgrid.levels
+    def _levels_arg(self):
+        """The active-level count the hash ops get: the device tensor on the device-side
+        schedule (the kernels read it when they run, so a captured graph follows it and the
+        inactive levels cost nothing), else the int."""
+        return self._levels_t if self._dev_sched else self.active_levels
 
     def _encode(self, u: torch.Tensor) -> torch.Tensor:
         """[N, L*F] hash features of u in [0, 1]^3 at the active levels (zero above them)."""
-        if not self._dev_sched or self.all_levels():
-            return self.encode(u, self.table, self.grid_cfg, self.active_levels)
-        feats = self.encode(u, self.table, self.grid_cfg, self.hashgrid.levels)
-        return feats * (self._feat_level < self._levels_t).to(feats.dtype)
+        return self.encode(u, self.table, self.grid_cfg, self._levels_arg())
 
     def _encode_jac(self, u: torch.Tensor):
         """Features [N, L*F] and d feats / d u [N, L*F, 3] at the active levels (zero above them)."""
-        if not self._dev_sched or self.all_levels():
-            return self.encode_jac(u, self.table, self.grid_cfg, self.active_levels)
-        feats, jac = self.encode_jac(u, self.table, self.grid_cfg, self.hashgrid.levels)
-        m = (self._feat_level < self._levels_t).to(feats.dtype)
-        return feats * m, jac * m[:, None]
+        return self.encode_jac(u, self.table, self.grid_cfg, self._levels_arg())
 
     def normal_eps(self) -> float:
         """Finite-difference step tied to the finest active level (normalised units)."""

@@ -131,10 +131,7 @@ class StepGraphs:
         return ok
 
     def _key(self, tr, batch: dict, capacity: int, p: float) -> tuple:
-        # all_levels: a graph recorded during coarse-to-fine multiplies by the device-side level
-        # mask, one recorded after it does not (SDFField._encode); never replay the latter early
-        return (batch["origins"].shape[0], capacity, *tr.photo_priors(p), tuple(sorted(batch)),
-                tr.field.all_levels())
+        return (batch["origins"].shape[0], capacity, *tr.photo_priors(p), tuple(sorted(batch)))
 
     def ray_count(self, n: int) -> int:
         """The ray count of this step: the last one while ``n`` stays within :data:`RAY_SLACK` of
