@@ -43,8 +43,12 @@ def test_tensor_count_is_the_int_count(device, jac):
     for k in sorted({0, 1, L // 2, L}):
         ref = _run(op, u, table, k, ups)
         got = _run(op, u, table, torch.tensor([k], dtype=torch.int32, device=device), ups)
-        for a, b in zip(got, ref):  # same kernels, the inactive threads return: bit for bit
-            assert torch.equal(a, b), (seed, k)
+        n_out = len(got) - 2
+        for i, (a, b) in enumerate(zip(got, ref)):
+            if i < n_out or device == "cpu":  # same kernels, the inactive threads return: bit for bit
+                assert torch.equal(a, b), (seed, k, i)
+            else:  # CUDA's float atomics add the gradients in a different order on every launch
+                assert float((a - b).abs().max()) <= 1e-5 * max(float(b.abs().max()), 1e-12), (seed, k, i)
         tw_int = _run(twin, u, table, k, ups)
         tw_t = _run(twin, u, table, torch.tensor([k], device=device), ups)
         for a, b, c in zip(tw_t, tw_int, ref):

@@ -37,21 +37,24 @@ def test_the_trainer_weighs_the_priors_by_the_room(tmp_path):
     from fastneus.train.trainer import Trainer
 
     assert load_config("cpu-quick").loss.bg_weight_lit == 0.3
-    assert load_config("fewview").loss.bg_weight_lit == 0.0  # the GPU preset: bg_weight everywhere
+    assert load_config("fewview").loss.bg_weight_lit == 0.3  # the GPU preset too (H100, mask-weight.md)
     seen = {}
     for illum in ("normal", "dark"):
         # the default projector (1024 x 768): a 64 x 48 one draws lines so wide that a dark scene's
         # photos are mostly laser-lit, bright and solid (what the room test then rightly calls lit)
         scene = synthesize(tmp_path / illum, shape="sphere", views=2, size=(64, 64), illum=illum, device="cpu",
                            noise=0.0, progress=False, contact_sheet=False)
-        for preset in ("cpu-quick", "fewview"):
-            cfg = load_config(preset, ["masks=off", "threads=1"])
+        for preset in ("cpu-quick", "fewview", "zero"):
+            over = ["bg_weight_lit=0"] if preset == "zero" else []  # 0: bg_weight in every room
+            cfg = load_config("fewview" if preset == "zero" else preset, ["masks=off", "threads=1", *over])
             tr = Trainer(scene, cfg, tmp_path / f"r-{illum}-{preset}", "cpu")
             assert tr.bg_used
             seen[illum, preset] = (tr.bank.lit_room, tr.bg_weight, "lit room" in tr.bg_note)
     assert seen["normal", "cpu-quick"] == (True, 0.3, True)
     assert seen["dark", "cpu-quick"] == (False, 0.1, False)
-    assert seen["normal", "fewview"] == (True, 0.1, False)
+    assert seen["normal", "fewview"] == (True, 0.3, True)
+    assert seen["dark", "fewview"] == (False, 0.1, False)
+    assert seen["normal", "zero"] == (True, 0.1, False)
     # with masks the photo priors are off whatever the room
     tr = Trainer(scene, load_config("cpu-quick", ["threads=1"]), tmp_path / "rm", "cpu")
     assert not tr.bg_used and tr.bg_weight == 0.1
