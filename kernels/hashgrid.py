@@ -455,6 +455,9 @@ def _n_active(cfg: HashGridConfig, active_levels) -> int:
     return max(0, min(int(active_levels), cfg.levels))
 
 
+# [1] int32 counts per (value, device) for calls given an int. Created on first use, which is never
+# inside a CUDA graph capture: a captured step passes the field's device tensor (SDFField._levels_arg)
+# and its eager warm-up runs first, as for _level_table.
 _const_cache: dict = {}
 
 
