@@ -575,11 +575,10 @@ class Trainer:
         i_r, i_b = self.illumination()
         bg_on, fg_on = self.photo_priors(p)  # both off when masks are used
         bg_on = bg_on and "bg" in batch
-        cos = self.cos_anneal(p)
-        if self.cos_dev is not None:  # captured steps read the ratio from the device (StepGraphs)
-            if not torch.cuda.is_current_stream_capturing():
-                self.cos_dev.fill_(cos)
-            cos = self.cos_dev
+        # a graph being recorded reads the ratio from the device buffer StepGraphs.step fills before
+        # every replay; an eager step passes the value itself
+        cos = (self.cos_dev if self.cos_dev is not None and torch.cuda.is_current_stream_capturing()
+               else self.cos_anneal(p))
         out = shade_samples(self.field, smp, self.rig.projection(), batch["origins"], batch["dirs"], batch["fidx"], c,
                             i_r=i_r, i_b=i_b, cos_anneal=cos, curvature=c.loss.curvature_weight > 0,
                             extra_points=xr, lit=bg_on and self.bg_lit)
