@@ -112,3 +112,65 @@ def test_floor_flags_outside_a_dark_room_and_no_halo_test_in_a_dark_one(tmp_path
     codes = torch.from_numpy(np.repeat(np.round(v * 255).astype(np.uint8)[..., None], 3, -1).reshape(-1, 3))
     fg = foreground_flags(codes, None, 0.0, 0.02, 0.5, [(10, 10)]).reshape(10, 10).numpy()
     assert fg[:, 5].all() and fg[0:8, 0:3].all()
+
+
+def _codes(v: np.ndarray) -> torch.Tensor:
+    return torch.from_numpy(np.repeat(np.round(v * 255).astype(np.uint8)[..., None], 3, -1).reshape(-1, 3))
+
+
+def test_halo_weights_weigh_the_lens_halo_as_background_and_spare_thin_parts():
+    """A blurred blob's halo (neither flag) becomes partial background by how far under the
+    neighbourhood's brightest pixel it is; the flags' own pixels, a thin part (its own
+    neighbourhood's maximum) and pixels away from the backdrop keep their weights."""
+    import cv2
+
+    from fastneus.train.rays import foreground_flags, halo_radius, halo_weights
+
+    h, w = 24, 36
+    sharp = np.zeros((h, w), np.float32)
+    sharp[6:18, 5:15] = 0.6                   # a lit blob
+    sharp[3:21, 25] = 0.3                     # a thin leg, 1 px wide
+    v = cv2.GaussianBlur(sharp, (0, 0), 0.7)
+    codes = _codes(v)
+    fg = foreground_flags(codes, None, 0.0, 0.02, 0.5, [(w, h)])
+    bg = torch.from_numpy(np.round(v * 255).reshape(-1) <= 2)
+    r = halo_radius(0.7)
+    assert r == 2 and halo_radius(0.0) == 0 and halo_radius(0.5) == 1
+    wt = halo_weights(codes, None, 0.0, fg, bg, [(w, h)], r, 0.35).reshape(h, w).numpy()
+    fgi, bgi = fg.reshape(h, w).numpy(), bg.reshape(h, w).numpy()
+    assert (wt[bgi] == 255).all() and (wt[fgi] == 0).all()
+    ring = ~fgi & ~bgi
+    assert ring[5, 6:14].all() and (wt[5, 6:14] > 60).all()     # the blob's halo row: backdrop now
+    assert fgi[3:21, 25].all() and (wt[3:21, 25] == 0).all()    # the leg stays free of the prior
+    # the rule: weight = 1 - (v / max within 2 px) / share, clamped, on the band's pixels
+    y, x = 5, 9
+    ratio = np.round(v * 255)[y, x] / np.round(v * 255)[max(0, y - 2):y + 3, x - 2:x + 3].max()
+    assert abs(wt[y, x] / 255 - max(0.0, 1 - ratio / 0.35)) < 0.01
+    assert torch.equal(halo_weights(codes, None, 0.0, fg, bg, [(w, h)], 0, 0.35), bg.to(torch.uint8) * 255)
+
+
+def test_trainer_weighs_the_halo_only_for_a_blurred_capture_in_a_lit_room(tmp_path):
+    """camera_blur > 0, no masks, a lit room: batches carry fractional background weights and
+    the note says so; a sharp capture (camera_blur=0) keeps the 0/1 flags bit for bit."""
+    from fastneus.config import load_config
+    from fastneus.train.rays import pixel_fields
+    from fastneus.train.trainer import Trainer
+
+    scene = synthesize(tmp_path / "s", shape="torus", views=2, size=(40, 36), illum="normal", seed=1,
+                       progress=False, realistic=True)
+    base = ["steps=4", "masks=off", "bg_prior=on", "fg_prior=on", "exposure=off", "occ_resolution=16"]
+    sharp = Trainer(scene, load_config("cpu-quick", base + ["camera_blur=0"]), tmp_path / "a", "cpu")
+    blurred = Trainer(scene, load_config("cpu-quick", base + ["camera_blur=0.7"]), tmp_path / "b", "cpu")
+    assert sharp.bank.lit_room and blurred.bank.lit_room
+    assert sharp.bank.bg_soft is None and sharp.blur_decision["halo_px"] == 0
+    assert blurred.blur_decision["halo_px"] == 2 and "halo" in blurred.blur_note()
+    flat = torch.arange(blurred.bank.n_pixels)
+    soft = pixel_fields(blurred.bank, flat, blurred.bank.rgb)["bg"]
+    plain = pixel_fields(sharp.bank, flat, sharp.bank.rgb)["bg"]
+    assert torch.equal(plain, sharp.bank.bg.float())
+    part = (soft > 0) & (soft < 1)
+    assert int(part.sum()) > 0 and not blurred.bank.bg[part].any()        # only unflagged pixels gain weight
+    assert torch.equal(soft[blurred.bank.bg], torch.ones(int(blurred.bank.bg.sum())))
+    off = Trainer(scene, load_config("cpu-quick", base + ["camera_blur=0.7", "bg_halo=0"]), tmp_path / "c", "cpu")
+    assert off.bank.bg_soft is None and off.blur_decision["halo_px"] == 0
+    blurred.train_step()  # the fractional weights go through the loss

@@ -233,7 +233,7 @@ def test_auto_blur_is_decided_once_saved_and_restored(tmp_path):
     assert half.blur_due == [0.5] and half.camera_blur == 0.7
     assert torch.equal(again.proj.store.buffer, tr.proj.store.buffer)
     fixed = Trainer(scene, load_config("cpu-quick", SMALL_RUN + ["threads=1", "camera_blur=0.5"]), tmp_path / "c", "cpu")
-    assert not fixed.blur_pending and fixed.camera_blur == 0.5 and fixed.blur_decision == {"mode": "set", "sigma": 0.5}
+    assert not fixed.blur_pending and fixed.camera_blur == 0.5 and fixed.blur_decision == {"mode": "set", "sigma": 0.5, "halo_px": 0}  # masks: no halo band
 
 
 def test_camera_blur_config_values():

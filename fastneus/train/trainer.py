@@ -28,7 +28,7 @@ from fastneus.train.progress import ProgressWriter
 from fastneus.train.rig import Rig
 from fastneus.train.rig import load_into as rig_load
 from fastneus.train.rig import state_of as rig_state
-from fastneus.train.rays import RayBank, build_projection, pattern_images
+from fastneus.train.rays import RayBank, build_projection, halo_radius, pattern_images
 from fastneus.data.response import decode_lut, is_identity, resolve_response
 
 
@@ -199,6 +199,7 @@ class Trainer:
             if blur is None else {"mode": "set", "sigma": blur}
         self.camera_blur = 0.0 if blur is None else blur  # the blur in use, camera px
         self.pattern_blur = self.camera_blur if cfg.rays.blur_via == "pattern" else 0.0
+        self.update_halo()  # a blur given as a number: from the start
         self.proj = build_projection(scene, self.frames, self.device, refraction=cfg.rig.refraction,
                                      camera_blur=self.pattern_blur)
         self.rig = Rig(scene, self.frames, self.bank, self.proj, cfg.rig, self.device,  # real-rig corrections
@@ -461,27 +462,44 @@ class Trainer:
         return store
 
     def apply_camera_blur(self, sigma: float) -> None:
-        """Blur the trainer's patterns by ``sigma`` camera px (from the unblurred images), in place."""
-        if self.cfg.rays.blur_via != "pattern" or sigma == self.pattern_blur:
-            self.camera_blur = sigma
-            return
-        new = self.blurred_store(sigma)
-        if new.buffer.shape != self.proj.store.buffer.shape:  # a blur keeps every pattern's size
-            raise FastneusError("blurred patterns changed size", field="rays.camera_blur")
-        self.proj.store.buffer.copy_(new.buffer)  # in place: the rig and captured CUDA graphs read this buffer
-        self.camera_blur = self.pattern_blur = sigma
+        """Blur the trainer's patterns by ``sigma`` camera px (from the unblurred images), in place,
+        and weigh the lens's halo into the background prior (:meth:`update_halo`)."""
+        if self.cfg.rays.blur_via == "pattern" and sigma != self.pattern_blur:
+            new = self.blurred_store(sigma)
+            if new.buffer.shape != self.proj.store.buffer.shape:  # a blur keeps every pattern's size
+                raise FastneusError("blurred patterns changed size", field="rays.camera_blur")
+            self.proj.store.buffer.copy_(new.buffer)  # in place: the rig and captured CUDA graphs read this buffer
+            self.pattern_blur = sigma
+        self.camera_blur = sigma
+        self.update_halo()
+
+    def update_halo(self) -> None:
+        """Without masks in a lit room, the background prior also covers the halo a blurred camera
+        spreads around the object (``loss.bg_halo``, :func:`fastneus.train.rays.halo_weights`;
+        realistic Normal, no masks, CPU 600 steps: ant 11.7 -> 7.2 mm symmetric, rock 11.1 ->
+        10.6). A sharp capture (blur 0), a dark room (the ambient-lit object fails the brightness
+        ratio next to the lines) or masks: the plain flags. The band's width goes into
+        :attr:`blur_decision` (``halo_px``)."""
+        b = self.bank
+        r = 0
+        if self.bg_used and self.cfg.loss.bg_halo > 0 and hasattr(b, "set_halo") and b.lit_room:
+            r = halo_radius(self.camera_blur)
+            b.set_halo(r, self.cfg.loss.bg_halo)
+        self.blur_decision["halo_px"] = r
 
     def blur_note(self) -> str:
         """One line on the camera blur in use (printed; run.json keeps :attr:`blur_decision`)."""
         d = self.blur_decision
+        halo = (f"; its halo ({d['halo_px']} px around the object) counts as background (bg_halo)"
+                if d.get("halo_px") else "")
         if d["mode"] == "set":
-            return f"camera blur: {d['sigma']:g} px (set)"
+            return f"camera blur: {d['sigma']:g} px (set){halo}"
         if d.get("sigma") is None:
             return f"camera blur: auto, estimated at {' and '.join(f'{100 * f:.0f}' for f in d['at_frac'])} % of the run"
         res = ", ".join(f"{s:g}:{r:.4f}" for s, r in zip(d["sigmas"], d["residuals"]))
         before = " -> ".join(f"{r['sigma']:g}" for r in d["rounds"][:-1])
         return (f"camera blur: auto -> {before + ' -> ' if before else ''}{d['sigma']:g} px at step {d.get('step')} "
-                f"({d['seconds']:.1f} s in all; residual per sigma {res or 'none: no lit rays'})")
+                f"({d['seconds']:.1f} s in all; residual per sigma {res or 'none: no lit rays'}){halo}")
 
     # ------------------------------------------------------------------ one step
     def train_step(self) -> dict | None:
