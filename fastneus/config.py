@@ -209,7 +209,7 @@ class LossSection:
     fg_relative: float = knob(0.5, "a foreground pixel must also be this share of the brightest pixel within 2 px "
                               "(the lens's halo around a bright object is not the object); 0 = threshold only",
                               lo=0.0, hi=1.0)
-    bg_halo: float = knob(0.35, "without masks in a lit room, once the camera blur is known (> 0): a pixel between "
+    bg_halo: float = knob(0.5, "without masks in a lit room, once the camera blur is known (> 0): a pixel between "
                           "the object and the backdrop (within 2 x the blur of it, neither flag) under this share of "
                           "the brightest pixel within 2 px is backdrop with weight 1 - share / bg_halo (the lens's "
                           "halo is not the object); 0 = off", lo=0.0, hi=1.0)

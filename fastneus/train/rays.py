@@ -142,9 +142,9 @@ def halo_weights(codes: torch.Tensor, lut: torch.Tensor | None, background: floa
     neither backdrop nor object, so nothing kept the rays through them empty and the surface
     grew into them (realistic ant, Normal light, no masks: the legs 2-3x their width). A pixel
     whose centre lies outside the object's blurred edge holds under half of the object's
-    brightness (a symmetric blur of an edge is at half height over the edge); ``share`` below
-    half leaves the uncertain pixels free, and a thin part is its own neighbourhood's brightest
-    pixel (ratio 1: weight 0).
+    brightness (a symmetric blur of an edge is at half height over the edge: ``share`` 0.5, the
+    foreground flags' own ratio, leaves no pixel claimed by neither), and a thin part is its own
+    neighbourhood's brightest pixel (ratio 1: weight 0).
 
     Args:
         codes: [sum HW, 3] uint8, frames concatenated; lut: [256] or None (linear codes);
