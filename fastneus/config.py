@@ -210,8 +210,8 @@ class LossSection:
                               "(the lens's halo around a bright object is not the object); 0 = threshold only",
                               lo=0.0, hi=1.0)
     bg_halo: float = knob(0.5, "without masks in a lit room, once the camera blur is known (> 0): a pixel between "
-                          "the object and the backdrop (within 2 x the blur of it, neither flag) under this share of "
-                          "the brightest pixel within 2 px is backdrop with weight 1 - share / bg_halo (the lens's "
+                          "the object and the backdrop (within 2 x the blur of it, neither flag) at a ratio r < bg_halo "
+                          "of the brightest pixel within 2 px is backdrop with weight 1 - r / bg_halo (the lens's "
                           "halo is not the object); 0 = off", lo=0.0, hi=1.0)
     fg_start_frac: float = knob(0.2, "the foreground prior acts from this fraction of the run (from the start it "
                                 "grew blobs: ant Dark 14.6 vs 5.3 mm GT->rec)", **FRAC)

@@ -477,9 +477,9 @@ class Trainer:
         """Without masks in a lit room, the background prior also covers the halo a blurred camera
         spreads around the object (``loss.bg_halo``, :func:`fastneus.train.rays.halo_weights`;
         realistic Normal, no masks, 10 s on an H100: ant 6.71 -> 3.62 mm symmetric, rock 9.92 ->
-        8.45; CPU 600 steps: ant 11.7 -> 5.6, rock 11.1 -> 9.3). A sharp capture (blur 0), a dark room (the ambient-lit object fails the brightness
-        ratio next to the lines) or masks: the plain flags. The band's width goes into
-        :attr:`blur_decision` (``halo_px``)."""
+        8.45; CPU 600 steps: ant 11.7 -> 5.6, rock 11.1 -> 9.3). A sharp capture (blur 0), a dark
+        room (the ambient-lit object fails the brightness ratio next to the lines) or masks: the
+        plain flags. The band's width goes into :attr:`blur_decision` (``halo_px``)."""
         b = self.bank
         r = 0
         if self.bg_used and self.cfg.loss.bg_halo > 0 and hasattr(b, "set_halo") and b.lit_room:
