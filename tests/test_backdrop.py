@@ -102,8 +102,9 @@ def test_floor_flags_outside_a_dark_room_and_no_halo_test_in_a_dark_one(tmp_path
                    bg_noise_k=3.0)
     floor = RayBank(_Noisy(scene, 0.005), [0, 1], "cpu", background=0.0, bg_tolerance=0.008, bg_cap=0.02, lut=lut)
     assert bank.bg_tolerance > 0.008 and not torch.equal(bank.bg, floor.bg)
+    bank.bg_soft = torch.zeros_like(bank.bg, dtype=torch.uint8)  # weights made from the wide flags
     bank.use_floor_background()
-    assert bank.bg_tolerance == 0.008 and torch.equal(bank.bg, floor.bg)
+    assert bank.bg_tolerance == 0.008 and torch.equal(bank.bg, floor.bg) and bank.bg_soft is None
     # a dark room: a dim leg next to a bright line keeps its flags (no relative test)
     v = np.zeros((10, 10), np.float32)
     v[:, 4] = 0.6

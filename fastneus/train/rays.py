@@ -405,6 +405,7 @@ class RayBank:
         if self.bg is not None and self.bg_tolerance > self._bg_floor:
             self.bg_tolerance = self._bg_floor
             self.bg = self._bg_flags(self._background, self.bg_tolerance)
+            self.bg_soft = None  # weights made from the old flags would be stale: set_halo again
 
     def _empty_masks(self, scene, masks: list) -> list[str]:
         """Mask files that are all zero. All of them empty is an error (nothing to reconstruct:
