@@ -107,6 +107,8 @@ def _march_count_kernel(
     max_samples: int,
     box: int,
     near_min: float,
+    stop: wp.array(dtype=wp.uint8),
+    use_stop: int,
     counts: wp.array(dtype=wp.int32),
 ):
     r = wp.tid()
@@ -120,6 +122,9 @@ def _march_count_kernel(
         t0 = tn + (float(k) + j) * step
         while t0 < tf and n < max_samples:
             t1 = wp.min(t0 + step, tf)
+            if use_stop != 0:
+                if _occupied(o, d, (t0 + t1) * 0.5, stop, res):
+                    break
             if _occupied(o, d, (t0 + t1) * 0.5, bits, res):
                 n += 1
             k += 1
@@ -138,6 +143,8 @@ def _march_fill_kernel(
     max_samples: int,
     box: int,
     near_min: float,
+    stop: wp.array(dtype=wp.uint8),
+    use_stop: int,
     offsets: wp.array(dtype=wp.int32),
     counts: wp.array(dtype=wp.int32),
     r0: int,  # global index of this launch's first ray (launches may cover a slice of the rays)
@@ -160,6 +167,9 @@ def _march_fill_kernel(
     # Same walk as the count pass; `cnt` bounds the writes even if a caller passes stale counts.
     while t0 < tf and n < cnt:
         t1 = wp.min(t0 + step, tf)
+        if use_stop != 0:
+            if _occupied(o, d, (t0 + t1) * 0.5, stop, res):
+                break
         if _occupied(o, d, (t0 + t1) * 0.5, bits, res):
             out_t0[base + n] = t0
             out_t1[base + n] = t1
@@ -208,6 +218,15 @@ def _check_rays(origins, dirs, bits, resolution, jitter, bound, max_samples):
         raise ValueError(f"jitter must be [R] = [{R}], got {tuple(jitter.shape)}")
     return (origins.detach().to(torch.float32).contiguous(), dirs.detach().to(dev, torch.float32).contiguous(),
             bits.detach().reshape(-1).to(dev, torch.uint8).contiguous(), jitter)
+
+
+def _check_stop(stop: torch.Tensor | None, bits: torch.Tensor) -> tuple[torch.Tensor, int]:
+    """(stop cells as a contiguous uint8 array, 1) or (a 1-cell placeholder, 0) when None."""
+    if stop is None:
+        return torch.zeros(1, dtype=torch.uint8, device=bits.device), 0
+    if stop.numel() != bits.numel():
+        raise ValueError(f"stop has {stop.numel()} cells, the grid {bits.numel()}")
+    return stop.detach().reshape(-1).to(bits.device, torch.uint8).contiguous(), 1
 
 
 def _empty_result(R: int, device) -> tuple[torch.Tensor, ...]:
@@ -277,13 +296,16 @@ def march_rays(
     jitter: torch.Tensor | None,  # [R] float32 in [0, 1) (None = zeros)
     bound: str = "sphere",
     near_min: float = 0.0,
+    stop: torch.Tensor | None = None,  # [res^3] uint8: a ray ends at the first such cell (None = none)
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
     """March rays through the occupancy grid and pack the samples in occupied cells (Warp).
 
     Sample k of ray r has ``t0 = t_near + (k + jitter[r]) * step`` and
     ``t1 = min(t0 + step, t_far)`` for k = 0, 1, ... while ``t0 < t_far``; it is emitted when
     the cell holding the midpoint ``(t0 + t1) / 2`` is occupied, at most ``max_samples`` per
-    ray. Two passes (count, fill) with one host read of the total sample count in between.
+    ray; with ``stop``, a ray ends at the first sample whose midpoint lies in a cell with a
+    non-zero ``stop`` value (the grid's cells deep inside the surface: nothing behind them is
+    seen). Two passes (count, fill) with one host read of the total sample count in between.
     Not differentiable.
 
     Args:
@@ -296,12 +318,14 @@ def march_rays(
         jitter: [R] float32 per-ray offset of the first sample, in units of ``step``.
         bound: "sphere" (unit sphere) or "box" ([-1, 1]^3) clip of the rays.
         near_min: lower limit of t_near.
+        stop: None or [res^3] uint8 cells that end a ray (:attr:`OccupancyGrid.stop`).
 
     Returns:
         offsets [R] int32 (exclusive cumsum of counts), counts [R] int32, t0 [S] float32,
         t1 [S] float32, ray_index [S] int32; samples packed by ray, in order of t.
     """
     o, d, bits, jitter = _check_rays(origins, dirs, bits, resolution, jitter, bound, max_samples)
+    stop, use_stop = _check_stop(stop, bits)
     R = o.shape[0]
     dev = o.device
     if R == 0:
@@ -314,9 +338,10 @@ def march_rays(
     # one thread per ray, writing only its own count (and, below, its own samples)
     per_ray = {0: (o, wp.vec3), 1: (d, wp.vec3), 2: (jitter, None)}
     ranges = _warp.item_ranges(R, o, MIN_CHUNK_RAYS)
+    ws = _warp.to_wp(stop)
     _warp.launch_chunked(_march_count_kernel, [wo, wd, wj, wb, int(resolution), step, int(max_samples), box,
-                                               near_min, _warp.to_wp(counts)], [], o, ranges,
-                         sliced_in={**per_ray, 9: (counts, None)})
+                                               near_min, ws, use_stop, _warp.to_wp(counts)], [], o, ranges,
+                         sliced_in={**per_ray, 11: (counts, None)})
     csum = torch.cumsum(counts, 0, dtype=torch.int32)
     offsets = csum - counts
     total = int(csum[-1].item())  # the one host sync: the output size must be known
@@ -325,9 +350,9 @@ def march_rays(
     ray_index = torch.empty(total, dtype=torch.int32, device=dev)
     if total > 0:
         _warp.launch_chunked(_march_fill_kernel, [wo, wd, wj, wb, int(resolution), step, int(max_samples), box,
-                                                  near_min, _warp.to_wp(offsets), _warp.to_wp(counts), 0],
+                                                  near_min, ws, use_stop, _warp.to_wp(offsets), _warp.to_wp(counts), 0],
                              [_warp.to_wp(t0), _warp.to_wp(t1), _warp.to_wp(ray_index)], o, ranges,
-                             sliced_in={**per_ray, 9: (offsets, None), 10: (counts, None)}, first_arg=11)
+                             sliced_in={**per_ray, 11: (offsets, None), 12: (counts, None)}, first_arg=13)
     return offsets, counts, t0, t1, ray_index
 
 
@@ -341,6 +366,7 @@ def march_rays_torch(
     jitter: torch.Tensor | None,  # [R] float32 in [0, 1) (None = zeros)
     bound: str = "sphere",
     near_min: float = 0.0,
+    stop: torch.Tensor | None = None,  # [res^3] uint8: a ray ends at the first such cell (None = none)
     chunk_elems: int = 1 << 23,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
     """Pure-torch twin of :func:`march_rays` (same arguments, identical outputs).
@@ -353,6 +379,7 @@ def march_rays_torch(
         offsets [R] int32, counts [R] int32, t0 [S] float32, t1 [S] float32, ray_index [S] int32.
     """
     o, d, bits, jitter = _check_rays(origins, dirs, bits, resolution, jitter, bound, max_samples)
+    stop, use_stop = _check_stop(stop, bits)
     R = o.shape[0]
     dev = o.device
     if R == 0:
@@ -383,6 +410,8 @@ def march_rays_torch(
             p = c_o[:, ax:ax + 1] + mid * c_d[:, ax:ax + 1]
             idx.append(torch.floor((p + 1.0) * 0.5 * float(res)).to(torch.int64).clamp_(0, res - 1))
         lin = idx[0] + idx[1] * res + idx[2] * (res * res)
+        if use_stop:  # the first stop cell along the ray and everything after it: not marched
+            inside = inside & (torch.cumsum((inside & (stop[lin] != 0)).to(torch.int32), 1) == 0)
         emit = inside & (bits[lin] != 0)
         emit &= torch.cumsum(emit.to(torch.int32), 1) <= max_samples
         counts[a:b] = emit.sum(1).to(torch.int32)
@@ -450,6 +479,10 @@ class OccupancyGrid:
             and only where ``allowed`` (when set).
         allowed: None or [res^3] bool: cells that may ever be occupied (e.g. the volume the
             training cameras see); derived from the scene, so not part of ``state_dict``.
+        stop: None or [res^3] uint8, 1 where the last update found the SDF below
+            ``-inside`` (deep inside the surface: a ray that reaches such a cell sees nothing
+            behind it, :func:`march_rays`'s ``stop``); None before the first update with
+            ``inside > 0``. Derived, so not part of ``state_dict``.
     """
 
     def __init__(self, resolution: int = 128, device: str | torch.device = "cpu"):
@@ -459,6 +492,7 @@ class OccupancyGrid:
         self.values = torch.zeros(n, dtype=torch.float32, device=self.device)
         self.bits = torch.ones(n, dtype=torch.uint8, device=self.device)  # all occupied until first update
         self.allowed: torch.Tensor | None = None
+        self.stop: torch.Tensor | None = None
         self._ijk = None
 
     def set_allowed(self, allowed: torch.Tensor | None) -> None:
@@ -499,7 +533,7 @@ class OccupancyGrid:
     @torch.no_grad()
     def update(self, sdf_fn: Callable[[torch.Tensor], torch.Tensor], inv_s: float, step: float,
                threshold: float = 0.01, decay: float = 0.95, warmup: bool = False, chunk: int = 2 ** 18,
-               subset: float | None = None, margin: float = 0.0, backend: str = "warp") -> None:
+               subset: float | None = None, margin: float = 0.0, backend: str = "warp", inside: float = 0.0) -> None:
         """Refresh the grid from the current SDF.
 
         Every cell decays (``values *= decay``); the evaluated cells (all, or a random
@@ -520,8 +554,11 @@ class OccupancyGrid:
             margin: subtracted from |sdf| before the alpha (e.g. half a cell diagonal,
                 sqrt(3)/res, keeps thin shells occupied at large s); 0 = plain rule.
             backend: "warp" or "torch" for the alpha op.
+            inside: > 0: also mark :attr:`stop` where the SDF at the cell's point is below
+                ``-inside`` (normalised units); 0: no stop cells.
         """
         if warmup:
+            self.stop = None
             self.bits.fill_(1)
             if self.allowed is not None:
                 self.bits &= self.allowed.to(torch.uint8)
@@ -534,8 +571,11 @@ class OccupancyGrid:
         pts = self.cell_centers(jitter=True, index=index)
         alpha_fn = occupancy_alpha if backend == "warp" else occupancy_alpha_torch
         alpha = torch.empty(pts.shape[0], dtype=torch.float32, device=self.device)
+        deep = torch.empty(pts.shape[0], dtype=torch.uint8, device=self.device) if inside > 0 else None
         for a in range(0, pts.shape[0], chunk):
             f = sdf_fn(pts[a:a + chunk]).reshape(-1).to(torch.float32)
+            if deep is not None:
+                deep[a:a + chunk] = f < -inside
             if margin:
                 f = (f.abs() - margin).clamp_min(0.0)
             alpha[a:a + chunk] = alpha_fn(f, inv_s, step)
@@ -548,6 +588,16 @@ class OccupancyGrid:
         if self.allowed is not None:
             occ &= self.allowed
         self.bits.copy_(occ)
+        if deep is None:
+            self.stop = None
+        else:
+            if self.stop is None:
+                self.stop = torch.zeros(n, dtype=torch.uint8, device=self.device)
+            if index is None:
+                self.stop.copy_(deep)
+            else:
+                self.stop[index] = deep
+            self.stop &= ~occ.to(torch.uint8) & 1  # an occupied cell is sampled, never a ray's end
 
     def occupied_fraction(self) -> float:
         """Fraction of occupied cells (host sync; for logging only)."""
@@ -562,7 +612,7 @@ class OccupancyGrid:
             origins: [R, 3] float32; dirs: [R, 3] float32 unit; jitter: [R] float32 or None.
         """
         fn = march_rays if backend == "warp" else march_rays_torch
-        return fn(origins, dirs, self.bits, self.resolution, step, max_samples, jitter, bound, near_min)
+        return fn(origins, dirs, self.bits, self.resolution, step, max_samples, jitter, bound, near_min, self.stop)
 
     def state_dict(self) -> dict:
         return {"resolution": self.resolution, "values": self.values.clone(), "bits": self.bits.clone()}
@@ -572,6 +622,7 @@ class OccupancyGrid:
             raise ValueError(f"occupancy grid resolution {state['resolution']} != {self.resolution}")
         self.values.copy_(state["values"])
         self.bits.copy_(state["bits"])
+        self.stop = None  # derived at the next update
         if self.allowed is not None:
             self.bits &= self.allowed.to(torch.uint8)
 
@@ -579,6 +630,7 @@ class OccupancyGrid:
         self.device = torch.device(device)
         self.values = self.values.to(self.device)
         self.bits = self.bits.to(self.device)
+        self.stop = None if self.stop is None else self.stop.to(self.device)
         if self.allowed is not None:
             self.allowed = self.allowed.to(self.device)
         self._ijk = None

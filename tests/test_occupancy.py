@@ -188,3 +188,61 @@ def test_rays_for_target():
     assert occ.rays_for_target(2**18, 1e6, 256, 8192) == 256
     assert occ.rays_for_target(1000, 3.0, 1, 10**6) == 333
     assert occ.rays_for_target(1000, 0.0, 1, 77) == 77
+
+
+@pytest.mark.parametrize("device", DEVICES)
+@pytest.mark.parametrize("bound", ["sphere", "box"])
+def test_march_stop_cells_match_twin(device, bound):
+    """Random stop cells: the Warp op and its twin end every ray at the same sample; each ray's
+    samples are the unstopped march's first ones, and none lies at or past its first stop cell."""
+    gen = torch.Generator().manual_seed(int(torch.randint(0, 2**31 - 1, (1,))))
+    res = 24
+    bits = (torch.rand(res**3, generator=gen) < 0.35).to(torch.uint8).to(device)
+    stop = ((torch.rand(res**3, generator=gen) < 0.08).to(torch.uint8) * (1 - bits.cpu())).to(device)
+    o, d, jitter = _random_rays(1500, device, gen)
+    args = (o, d, bits, res, 0.013, 48, jitter, bound, 0.05)
+    w = get_op("march_rays", "warp")(*args, stop)
+    _assert_same(w, get_op("march_rays", "torch")(*args, stop))
+    free = get_op("march_rays", "warp")(*args)
+    assert bool((w[1] <= free[1]).all()) and int(w[1].sum()) < int(free[1].sum())  # rays were cut
+    assert int(w[1].sum()) > 200
+    for r in torch.nonzero(w[1] > 0).flatten()[:50].tolist():  # a prefix of the free march's samples
+        a, n, fa = int(w[0][r]), int(w[1][r]), int(free[0][r])
+        assert torch.equal(w[2][a:a + n], free[2][fa:fa + n])
+    # no sample of a ray lies past a stop cell on its way: check the cells of its midpoints' path
+    mid = (w[2] + w[3]) * 0.5
+    x = o[w[4].long()] + mid[:, None] * d[w[4].long()]
+    cell = ((x + 1) * 0.5 * res).floor().long().clamp(0, res - 1)
+    lin = cell[:, 0] + cell[:, 1] * res + cell[:, 2] * res * res
+    assert not bool(stop[lin].bool().any())
+    # an all-zero stop grid is the plain march
+    _assert_same(get_op("march_rays", "warp")(*args, torch.zeros_like(stop)), free)
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_grid_stop_cells_are_deep_inside(device):
+    """``inside`` marks the cells whose SDF is below -inside (never an occupied one); a ray
+    through the sphere then keeps its front shell's samples and drops the back shell's."""
+    res = 32
+    grid = occ.OccupancyGrid(res, device=device)
+    grid.update(_sphere_sdf, 100.0, 0.01, chunk=5000)
+    assert grid.stop is None
+    inside = 2 * 2.0 / res  # deep inside: |x| < 0.375, so a ray at |x| <= 0.15 crosses 0.68 of it
+    # a sharp surface (s = 100): the occupied shell is thinner than the stop depth
+    grid.update(_sphere_sdf, 100.0, 0.01, chunk=5000, margin=math.sqrt(3) / res, inside=inside)
+    c = _sphere_sdf(grid.cell_centers(jitter=False))
+    half_diag = math.sqrt(3) / res
+    assert bool(grid.stop[c < -inside - half_diag].bool().all())
+    assert not bool(grid.stop[c > -inside + half_diag].bool().any())
+    assert not bool((grid.stop.bool() & grid.bits.bool()).any())
+    o = torch.tensor([[0.0, 0.0, -2.0]], device=device).repeat(8, 1)
+    o[:, 0] = torch.linspace(-0.15, 0.15, 8)
+    d = torch.tensor([[0.0, 0.0, 1.0]], device=device).repeat(8, 1)
+    w = grid.march(o, d, 0.01, 1024, torch.full((8,), 0.5, device=device))
+    mid = o[w[4].long(), 2] + (w[2] + w[3]) * 0.5
+    assert w[2].numel() > 0 and float(mid.max()) < 0.0  # all samples in the front half (z < 0)
+    grid.stop = None
+    full = grid.march(o, d, 0.01, 1024, torch.full((8,), 0.5, device=device))
+    assert float((o[full[4].long(), 2] + (full[2] + full[3]) * 0.5).max()) > 0.5  # the back shell too
+    grid.update(_sphere_sdf, 20.0, 0.01, warmup=True)
+    assert grid.stop is None

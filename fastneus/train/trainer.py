@@ -168,6 +168,8 @@ class Trainer:
                               lut=None if is_identity(self.response) else decode_lut(self.response))
         if getattr(self.bank, "empty_masks", None):  # all-zero masks: the object is outside those views (or a wrong file)
             self.masks_note += f"; warning: empty (all-zero) mask {', '.join(self.bank.empty_masks)}"
+        # rays end deep inside the object (occupancy.stop_rays): their samples past it carry no weight
+        self.stop_used = bool(cfg.occupancy.stop_rays)
         self.bg_used, self.bg_note = resolve_bg_prior(cfg, self.masks_used, self.bank.bg_fraction)
         self.fg_used = resolve_fg_prior(cfg, self.bg_used, self.bank.bg_fraction)
         # the noise-floor tolerance (fastneus.train.rays.backdrop_tolerance) decides whether this is a
@@ -358,7 +360,8 @@ class Trainer:
             # margin = half a cell diagonal keeps thin shells occupied once s is large
             self.grid.update(self.field.sdf, float(self.field.inv_s().detach()), c.rays.march_step,
                              threshold=c.occupancy.occ_threshold, margin=math.sqrt(3) / self.grid.resolution,
-                             backend=c.run.backend)
+                             backend=c.run.backend,
+                             inside=c.occupancy.stop_inside * 2.0 / self.grid.resolution if self.stop_used else 0.0)
 
     def decide_camera_blur(self) -> dict:
         """``camera_blur=auto``: estimate the blur from the data (:func:`fastneus.train.blurfit.
@@ -527,7 +530,8 @@ class Trainer:
         # a few uniform points for the eikonal term so the far field stays an SDF; they go through
         # the field in the same call as the samples (one hash + MLP pass instead of two)
         xr = torch.rand(max(256, n // 4), 3, device=self.device, generator=self.gen) * 2 - 1
-        smp = march_samples(self.grid.bits, self.grid.resolution, batch["origins"], batch["dirs"], c, jitter=True)
+        smp = march_samples(self.grid.bits, self.grid.resolution, batch["origins"], batch["dirs"], c, jitter=True,
+                            stop=self.grid.stop)
         s = smp["n_samples"]
         # adapt the ray count to the sample budget (s is known on the host from marching)
         mean_spr = max(1.0, s / n)
