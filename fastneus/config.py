@@ -124,10 +124,10 @@ class OccupancySection:
 
     occ_resolution: int = knob(128, "cells per side", lo=1, hi=1024, model=True)
     occ_update_every: int = knob(16, "steps between grid updates", lo=1)
-    stop_rays: bool = knob(False, "training rays end at the first cell deep inside the object (SDF below "
-                           "-stop_inside cells at the last grid update: nothing behind it is seen), so a step's samples "
-                           "go to more rays. Measured (H100, 10 s, masks): dark rooms 2-7 % better (rock 5 s 7.53 -> "
-                           "7.08 mm), lit rooms 1-5 % worse: off by default (docs/perf-notes, entry 24)")
+    stop_rays: str = knob("auto", "training rays end at the first cell deep inside the object (SDF below "
+                          "-stop_inside cells at the last grid update: nothing behind it is seen), so a step's samples "
+                          "go to more rays: auto (with masks in a dark room: H100 rock 5 s 7.53 -> 7.08 mm; lit "
+                          "rooms were 1-5 % worse, no masks mixed) | on | off", choices=("auto", "on", "off"))
     stop_inside: float = knob(3.0, "depth below the surface, in grid cells, of the cells that end a ray (stop_rays)",
                               lo=0.0, lo_open=True)
     occ_warmup_frac: float = knob(0.2, "every cell occupied for this fraction of the run", **FRAC)

@@ -1,7 +1,8 @@
 """Training rays end deep inside the object (``occupancy.stop_rays``, fastneus/train/trainer.py).
 
-Off unless asked; the grid's stop cells after an update and the march of a training step reading
-them; the march itself against its twin is in tests/test_occupancy.py.
+The decision (auto: with masks in a dark room), its note, the grid's stop cells after an update and
+the march of a training step reading them; the march itself against its twin is in
+tests/test_occupancy.py.
 """
 from __future__ import annotations
 
@@ -20,16 +21,31 @@ def _trainer(scene_dir, tmp_path, extra=()):
     return Trainer(Scene.load(scene_dir), cfg, tmp_path / "run", "cpu")
 
 
-@pytest.mark.parametrize("extra,used", [([], False), (["stop_rays=true"], True), (["masks=off", "stop_rays=true"], True)])
-def test_off_unless_asked(small_scene, tmp_path, extra, used):
+@pytest.mark.parametrize("extra,used", [([], False), (["stop_rays=on"], True), (["masks=off", "stop_rays=on"], True)])
+def test_lit_room_decision(small_scene, tmp_path, extra, used):
+    """The sphere scene is lit (its masked pixels' median brightness is over LIT_ROOM): auto is off."""
     tr = _trainer(small_scene, tmp_path, extra)
     assert tr.stop_used is used
+    assert ("rays end 3 grid cells inside the object" in tr.masks_note) is used
+
+
+def test_dark_room_with_masks_turns_it_on(small_scene, tmp_path, monkeypatch):
+    from fastneus.train import rays
+
+    tr = _trainer(small_scene, tmp_path)
+    assert not tr.bank.dark_object()
+    monkeypatch.setattr(rays, "LIT_ROOM", 2.0)  # every masked pixel now counts as dark
+    tr = _trainer(small_scene, tmp_path / "dark")
+    assert tr.bank.dark_object() and tr.stop_used
+    assert "dark room: rays end 3 grid cells inside the object (stop_rays)" in tr.masks_note
+    assert not _trainer(small_scene, tmp_path / "nomask", ["masks=off"]).stop_used  # no masks: auto is off
+    assert not _trainer(small_scene, tmp_path / "off", ["stop_rays=off"]).stop_used
 
 
 def test_a_step_marches_with_the_grids_stop_cells(small_scene, tmp_path, monkeypatch):
     import fastneus.train.trainer as trainer_mod
 
-    tr = _trainer(small_scene, tmp_path, ["stop_rays=true"])
+    tr = _trainer(small_scene, tmp_path, ["stop_rays=on"])
     seen = []
     march = trainer_mod.march_samples
 

@@ -384,6 +384,17 @@ class RayBank:
             return False
         return lit_room(self.rgb, self.lut, self._background, *self._room)
 
+    def dark_object(self) -> bool:
+        """With masks: whether the object's pixels are mostly dark (median brightest channel,
+        linear, under :data:`LIT_ROOM`): lasers in a dark room rather than an ambient-lit object.
+        False without masks."""
+        if self.mask is None:
+            return False
+        inside = self.mask > 127
+        if not bool(inside.any()):
+            return False
+        return float(_brightness(self.rgb[inside], self.lut, 0.0).median()) < LIT_ROOM
+
     def _bg_flags(self, background: float, tol: float) -> torch.Tensor:
         """[sum HW] bool: every channel within ``tol`` (linear) of ``background``."""
         if self.lut is not None:  # background and tolerance are linear values

@@ -169,7 +169,12 @@ class Trainer:
         if getattr(self.bank, "empty_masks", None):  # all-zero masks: the object is outside those views (or a wrong file)
             self.masks_note += f"; warning: empty (all-zero) mask {', '.join(self.bank.empty_masks)}"
         # rays end deep inside the object (occupancy.stop_rays): their samples past it carry no weight
-        self.stop_used = bool(cfg.occupancy.stop_rays)
+        mode = cfg.occupancy.stop_rays
+        self.stop_used = mode == "on" or (mode == "auto" and self.masks_used and hasattr(self.bank, "dark_object")
+                                          and self.bank.dark_object())
+        if self.stop_used:
+            self.masks_note += (f"; {'dark room: ' if mode == 'auto' else ''}rays end {cfg.occupancy.stop_inside:g} "
+                                "grid cells inside the object (stop_rays)")
         self.bg_used, self.bg_note = resolve_bg_prior(cfg, self.masks_used, self.bank.bg_fraction)
         self.fg_used = resolve_fg_prior(cfg, self.bg_used, self.bank.bg_fraction)
         # the noise-floor tolerance (fastneus.train.rays.backdrop_tolerance) decides whether this is a
