@@ -10,6 +10,7 @@ rather than by accumulating ``step``.
 """
 from __future__ import annotations
 
+import functools
 import math
 from typing import Callable
 
@@ -220,10 +221,17 @@ def _check_rays(origins, dirs, bits, resolution, jitter, bound, max_samples):
             bits.detach().reshape(-1).to(dev, torch.uint8).contiguous(), jitter)
 
 
+@functools.lru_cache(maxsize=8)
+def _no_stop(device: torch.device) -> torch.Tensor:
+    """The 1-cell placeholder the kernels get without stop cells, made once per device (the
+    march runs every step: no allocation and fill kernel for it each time). Never written."""
+    return torch.zeros(1, dtype=torch.uint8, device=device)
+
+
 def _check_stop(stop: torch.Tensor | None, bits: torch.Tensor) -> tuple[torch.Tensor, int]:
     """(stop cells as a contiguous uint8 array, 1) or (a 1-cell placeholder, 0) when None."""
     if stop is None:
-        return torch.zeros(1, dtype=torch.uint8, device=bits.device), 0
+        return _no_stop(bits.device), 0
     if stop.numel() != bits.numel():
         raise ValueError(f"stop has {stop.numel()} cells, the grid {bits.numel()}")
     return stop.detach().reshape(-1).to(bits.device, torch.uint8).contiguous(), 1

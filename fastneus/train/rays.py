@@ -391,9 +391,7 @@ class RayBank:
         if self.mask is None:
             return False
         inside = self.mask > 127
-        if not bool(inside.any()):
-            return False
-        return float(_brightness(self.rgb[inside], self.lut, 0.0).median()) < LIT_ROOM
+        return bool(inside.any()) and not _bright_objects(_brightness(self.rgb, self.lut, 0.0), inside)
 
     def _bg_flags(self, background: float, tol: float) -> torch.Tensor:
         """[sum HW] bool: every channel within ``tol`` (linear) of ``background``."""
