@@ -124,6 +124,12 @@ class OccupancySection:
 
     occ_resolution: int = knob(128, "cells per side", lo=1, hi=1024, model=True)
     occ_update_every: int = knob(16, "steps between grid updates", lo=1)
+    occ_update_cells: str = knob("auto", "cells whose SDF a grid update queries: all | near (the occupied cells, "
+                                 "their neighbours and a random occ_near_rest of the others) | auto (near on the "
+                                 "CPU, where a full update is ~15 % of the training time; all on a GPU, where it "
+                                 "is ~1 %)", choices=("auto", "all", "near"))
+    occ_near_rest: float = knob(0.25, "occ_update_cells=near: share of the cells away from the occupied ones "
+                                "queried at each update", **FRAC)
     stop_rays: str = knob("auto", "training rays end at the first cell deep inside the object (SDF below "
                           "-stop_inside cells at the last grid update: nothing behind it is seen), so a step's samples "
                           "go to more rays: auto (with masks in a dark room: H100 rock 5 s 7.53 -> 7.08 mm; lit "

@@ -318,7 +318,8 @@ def _train_and_finish(trainer, scene, cfg: Config, out: Path, device: str, conso
                                          "background_prior": trainer.bg_note, "response": trainer.response_note,
                                          "camera_blur": trainer.blur_decision, "camera_blur_note": trainer.blur_note(),
                                          "exposure": trainer.exposure_decision,
-                                         "exposure_note": trainer.exposure_note(), **provenance()})
+                                         "exposure_note": trainer.exposure_note(),
+                                         "occupancy_updates": "near" if trainer.occ_near else "all", **provenance()})
     with stop_on_signal(trainer, out):
         last = trainer.fit(final_save=not finish)  # finish_run saves it right after mesh.ply
     # decided during the run (camera_blur=auto, exposure=auto): the decisions and their printed lines

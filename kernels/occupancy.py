@@ -541,11 +541,13 @@ class OccupancyGrid:
     @torch.no_grad()
     def update(self, sdf_fn: Callable[[torch.Tensor], torch.Tensor], inv_s: float, step: float,
                threshold: float = 0.01, decay: float = 0.95, warmup: bool = False, chunk: int = 2 ** 18,
-               subset: float | None = None, margin: float = 0.0, backend: str = "warp", inside: float = 0.0) -> None:
+               subset: float | None = None, margin: float = 0.0, backend: str = "warp", inside: float = 0.0,
+               near: float | None = None) -> None:
         """Refresh the grid from the current SDF.
 
-        Every cell decays (``values *= decay``); the evaluated cells (all, or a random
-        ``subset`` fraction) take ``max(values, alpha)`` with alpha = :func:`occupancy_alpha`
+        Every cell decays (``values *= decay``); the evaluated cells (all, a random ``subset``
+        fraction, or with ``near`` the occupied cells, their 26 neighbours and a random ``near``
+        fraction of the rest) take ``max(values, alpha)`` with alpha = :func:`occupancy_alpha`
         of ``max(|sdf(p)| - margin, 0)`` at a jittered point p of the cell; then
         ``bits = values > threshold``. ``warmup=True`` only marks every cell occupied (no SDF
         evaluation: the field is still meaningless then).
@@ -559,6 +561,12 @@ class OccupancyGrid:
             warmup: mark all cells occupied and return.
             chunk: points per ``sdf_fn`` call.
             subset: fraction in (0, 1] of cells evaluated this call (None = all).
+            near: fraction in [0, 1] of the cells away from the occupied ones (not occupied, no
+                occupied neighbour) evaluated this call; the occupied cells and their neighbours
+                always are (the surface moves less than a cell between updates, and an occupied
+                cell far from it decays out over ~90 updates anyway). None = ``subset``'s rule.
+                On the CPU a full update costs ~15 % of the training time (64^3 SDF queries
+                every 16 steps).
             margin: subtracted from |sdf| before the alpha (e.g. half a cell diagonal,
                 sqrt(3)/res, keeps thin shells occupied at large s); 0 = plain rule.
             backend: "warp" or "torch" for the alpha op.
@@ -573,7 +581,15 @@ class OccupancyGrid:
             return
         n = self.num_cells
         index = None
-        if subset is not None and subset < 1.0:
+        if near is not None and near < 1.0:
+            r = self.resolution
+            b = self.bits.view(1, 1, r, r, r).to(torch.float32)
+            pick = torch.nn.functional.max_pool3d(b, 3, stride=1, padding=1).view(-1) > 0
+            pick |= torch.rand(n, device=self.device) < near
+            if self.allowed is not None:  # a cell never allowed stays empty: no need to query it
+                pick &= self.allowed
+            index = pick.nonzero().squeeze(1)
+        elif subset is not None and subset < 1.0:
             m = max(1, int(math.ceil(subset * n)))
             index = torch.randperm(n, device=self.device)[:m]
         pts = self.cell_centers(jitter=True, index=index)

@@ -246,3 +246,53 @@ def test_grid_stop_cells_are_deep_inside(device):
     assert float((o[full[4].long(), 2] + (full[2] + full[3]) * 0.5).max()) > 0.5  # the back shell too
     grid.update(_sphere_sdf, 20.0, 0.01, warmup=True)
     assert grid.stop is None
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_grid_update_near_queries_the_occupied_cells_and_their_neighbours(device):
+    """``near``: a moved surface within a cell of the occupied shell is found as by a full update;
+    the cells away from it are queried only at the ``near`` rate, so a surface that jumps far is
+    missed at ``near=0`` and found at ``near=1``."""
+    res = 32
+    seen = []
+
+    def sdf_at(r):
+        def f(x):
+            seen.append(x.shape[0])
+            return x.norm(dim=-1) - r
+        return f
+
+    margin = math.sqrt(3) / res  # as the trainer: a cell the surface crosses stays occupied
+    full, sparse = occ.OccupancyGrid(res, device=device), occ.OccupancyGrid(res, device=device)
+    torch.manual_seed(int(torch.randint(0, 2**31 - 1, (1,))))
+    full.update(sdf_at(0.5), 100.0, 0.01, margin=margin)
+    sparse.load_state_dict(full.state_dict())
+    cell = 2.0 / res
+    prev = sparse.bits.clone()
+    ring = int((torch.nn.functional.max_pool3d(prev.view(1, 1, res, res, res).float(), 3, 1, 1) > 0).sum())
+    full.update(sdf_at(0.5 + 0.4 * cell), 100.0, 0.01, margin=margin)
+    seen.clear()
+    sparse.update(sdf_at(0.5 + 0.4 * cell), 100.0, 0.01, margin=margin, near=0.0)
+    # the cells that hold the moved surface are found, and every cell a full update occupies was
+    # queried (bits outside the queried cells agree: only the cells' random query points differ)
+    moved = (full.cell_centers(jitter=False).norm(dim=-1) - 0.5 - 0.4 * cell).abs() <= math.sqrt(3) / res
+    assert bool(sparse.bits[moved].bool().all())
+    queried = (torch.nn.functional.max_pool3d(prev.view(1, 1, res, res, res).float(), 3, 1, 1) > 0).view(-1)
+    assert torch.equal(full.bits[~queried], sparse.bits[~queried])
+    assert int(full.bits[~queried].sum()) == 0
+    # queried: exactly the occupied shell and its neighbours, far fewer than every cell
+    assert sum(seen) == ring and int(sparse.bits.sum()) < ring < res ** 3 // 2
+    # a surface far from the shell (radius 0.5 -> 0.9): not seen at near=0, seen at near=1
+    far = (full.cell_centers(jitter=False).norm(dim=-1) - 0.9).abs() < 0.5 * cell
+    g0, g1 = occ.OccupancyGrid(res, device=device), occ.OccupancyGrid(res, device=device)
+    g0.load_state_dict(sparse.state_dict())
+    g1.load_state_dict(sparse.state_dict())
+    g0.update(sdf_at(0.9), 100.0, 0.01, margin=margin, near=0.0)
+    g1.update(sdf_at(0.9), 100.0, 0.01, margin=margin, near=1.0)
+    assert not bool(g0.bits[far].bool().any()) and bool(g1.bits[far].bool().all())
+    # a fraction in between queries about that share of the other cells
+    near_before = int((torch.nn.functional.max_pool3d(g0.bits.view(1, 1, res, res, res).float(), 3, 1, 1) > 0).sum())
+    seen.clear()
+    g0.update(sdf_at(0.5), 100.0, 0.01, margin=margin, near=0.5)
+    away = res ** 3 - near_before
+    assert abs(sum(seen) - near_before - 0.5 * away) < 0.05 * away

@@ -175,6 +175,9 @@ class Trainer:
         if self.stop_used:
             self.masks_note += (f"; {'dark room: ' if mode == 'auto' else ''}rays end {cfg.occupancy.stop_inside:g} "
                                 "grid cells inside the object (stop_rays)")
+        # grid updates query only the cells near the occupied ones on the CPU (occupancy.occ_update_cells)
+        cells = cfg.occupancy.occ_update_cells
+        self.occ_near = cells == "near" or (cells == "auto" and self.device.type == "cpu")
         self.bg_used, self.bg_note = resolve_bg_prior(cfg, self.masks_used, self.bank.bg_fraction)
         self.fg_used = resolve_fg_prior(cfg, self.bg_used, self.bank.bg_fraction)
         # the noise-floor tolerance (fastneus.train.rays.backdrop_tolerance) decides whether this is a
@@ -366,7 +369,8 @@ class Trainer:
             self.grid.update(self.field.sdf, float(self.field.inv_s().detach()), c.rays.march_step,
                              threshold=c.occupancy.occ_threshold, margin=math.sqrt(3) / self.grid.resolution,
                              backend=c.run.backend,
-                             inside=c.occupancy.stop_inside * 2.0 / self.grid.resolution if self.stop_used else 0.0)
+                             inside=c.occupancy.stop_inside * 2.0 / self.grid.resolution if self.stop_used else 0.0,
+                             near=c.occupancy.occ_near_rest if self.occ_near else None)
 
     def decide_camera_blur(self) -> dict:
         """``camera_blur=auto``: estimate the blur from the data (:func:`fastneus.train.blurfit.
