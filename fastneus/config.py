@@ -126,7 +126,7 @@ class OccupancySection:
     occ_update_every: int = knob(16, "steps between grid updates", lo=1)
     occ_update_cells: str = knob("auto", "cells whose SDF a grid update queries: all | near (the occupied cells, "
                                  "their neighbours and a random occ_near_rest of the others) | auto (near on the "
-                                 "CPU, where a full update is ~15 % of the training time; all on a GPU, where it "
+                                 "CPU, where a full update was 23 % of a 1-thread step; all on a GPU, where it "
                                  "is ~1 %)", choices=("auto", "all", "near"))
     occ_near_rest: float = knob(0.25, "occ_update_cells=near: share of the cells away from the occupied ones "
                                 "queried at each update", **FRAC)

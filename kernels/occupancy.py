@@ -565,8 +565,8 @@ class OccupancyGrid:
                 occupied neighbour) evaluated this call; the occupied cells and their neighbours
                 always are (the surface moves less than a cell between updates, and an occupied
                 cell far from it decays out over ~90 updates anyway). None = ``subset``'s rule.
-                On the CPU a full update costs ~15 % of the training time (64^3 SDF queries
-                every 16 steps).
+                On the CPU a full update was 23 % of a 1-thread training step (64^3 SDF queries
+                every 16 steps; docs/perf-notes/2026-11-28-occupancy-near-cells.md).
             margin: subtracted from |sdf| before the alpha (e.g. half a cell diagonal,
                 sqrt(3)/res, keeps thin shells occupied at large s); 0 = plain rule.
             backend: "warp" or "torch" for the alpha op.

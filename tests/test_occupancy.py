@@ -248,6 +248,12 @@ def test_grid_stop_cells_are_deep_inside(device):
     assert grid.stop is None
 
 
+def _with_neighbours(bits: torch.Tensor) -> torch.Tensor:
+    """[R^3] bool: the set cells of a [R^3] grid and their 26 neighbours."""
+    r = round(bits.numel() ** (1 / 3))
+    return (torch.nn.functional.max_pool3d(bits.view(1, 1, r, r, r).float(), 3, 1, 1) > 0).view(-1)
+
+
 @pytest.mark.parametrize("device", DEVICES)
 def test_grid_update_near_queries_the_occupied_cells_and_their_neighbours(device):
     """``near``: a moved surface within a cell of the occupied shell is found as by a full update;
@@ -264,12 +270,11 @@ def test_grid_update_near_queries_the_occupied_cells_and_their_neighbours(device
 
     margin = math.sqrt(3) / res  # as the trainer: a cell the surface crosses stays occupied
     full, sparse = occ.OccupancyGrid(res, device=device), occ.OccupancyGrid(res, device=device)
-    torch.manual_seed(int(torch.randint(0, 2**31 - 1, (1,))))
     full.update(sdf_at(0.5), 100.0, 0.01, margin=margin)
     sparse.load_state_dict(full.state_dict())
     cell = 2.0 / res
-    prev = sparse.bits.clone()
-    ring = int((torch.nn.functional.max_pool3d(prev.view(1, 1, res, res, res).float(), 3, 1, 1) > 0).sum())
+    queried = _with_neighbours(sparse.bits)
+    ring = int(queried.sum())
     full.update(sdf_at(0.5 + 0.4 * cell), 100.0, 0.01, margin=margin)
     seen.clear()
     sparse.update(sdf_at(0.5 + 0.4 * cell), 100.0, 0.01, margin=margin, near=0.0)
@@ -277,7 +282,6 @@ def test_grid_update_near_queries_the_occupied_cells_and_their_neighbours(device
     # queried (bits outside the queried cells agree: only the cells' random query points differ)
     moved = (full.cell_centers(jitter=False).norm(dim=-1) - 0.5 - 0.4 * cell).abs() <= math.sqrt(3) / res
     assert bool(sparse.bits[moved].bool().all())
-    queried = (torch.nn.functional.max_pool3d(prev.view(1, 1, res, res, res).float(), 3, 1, 1) > 0).view(-1)
     assert torch.equal(full.bits[~queried], sparse.bits[~queried])
     assert int(full.bits[~queried].sum()) == 0
     # queried: exactly the occupied shell and its neighbours, far fewer than every cell
@@ -291,7 +295,7 @@ def test_grid_update_near_queries_the_occupied_cells_and_their_neighbours(device
     g1.update(sdf_at(0.9), 100.0, 0.01, margin=margin, near=1.0)
     assert not bool(g0.bits[far].bool().any()) and bool(g1.bits[far].bool().all())
     # a fraction in between queries about that share of the other cells
-    near_before = int((torch.nn.functional.max_pool3d(g0.bits.view(1, 1, res, res, res).float(), 3, 1, 1) > 0).sum())
+    near_before = int(_with_neighbours(g0.bits).sum())
     seen.clear()
     g0.update(sdf_at(0.5), 100.0, 0.01, margin=margin, near=0.5)
     away = res ** 3 - near_before
