@@ -289,6 +289,38 @@ def test_blur_candidates_are_the_built_patterns(tmp_path):
     _check_blurred_stores(tmp_path, "cpu")
 
 
+@pytest.mark.parametrize("cap", ["default", "zero"])
+def test_cpu_blur_estimates_read_and_blur_the_patterns_once(tmp_path, monkeypatch, cap):
+    """On the CPU the two blur estimates read each pattern image once and blur each candidate once
+    (they were read again for every candidate of every round: ~1 s of a 30-s run), the kept
+    stores go after the last estimate, and patterns over the host-memory cap are read again
+    instead of kept."""
+    from fastneus.data.scene import Scene
+    from fastneus.train import blurfit
+    from fastneus.train import trainer as T
+
+    if cap == "zero":
+        monkeypatch.setattr(T, "HOST_PATTERN_CACHE", 0)
+    scene, tr = _blur_trainer(tmp_path, "cpu")
+    reads, builds = [], []
+    real_read, real_build = Scene.pattern_image, T.build_projection
+    monkeypatch.setattr(Scene, "pattern_image", lambda self, pid: reads.append(pid) or real_read(self, pid))
+    monkeypatch.setattr(T, "build_projection", lambda *a, **k: builds.append(k.get("camera_blur")) or real_build(*a, **k))
+    tr.prime()
+    for _ in range(10):  # both estimates (30 and 50 % of the run)
+        tr.train_step()
+    assert not tr.blur_pending and len(tr.blur_decision["rounds"]) == 2
+    n_pat = len({fp.pattern for i in tr.frames for fp in scene.frames[i].projectors.values()})
+    n_cand = len(blurfit.AUTO_SIGMAS)
+    if cap == "default":
+        assert len(reads) == n_pat  # once per run
+        # each grid candidate built once for both rounds (plus a round's refined pick, if any)
+        assert all(builds.count(s) == 1 for s in blurfit.AUTO_SIGMAS) and len(builds) < 2 * n_cand
+    else:  # nothing kept: read and built per candidate and round (the old behaviour)
+        assert len(reads) >= 2 * n_cand * n_pat and len(builds) >= 2 * n_cand
+    assert tr._blurred == {} and tr._patterns is None  # dropped after the last estimate
+
+
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
 def test_cuda_blur_candidates_are_built_before_the_clock_and_dropped_after(tmp_path):
     _check_blurred_stores(tmp_path, "cuda")

@@ -206,7 +206,7 @@ def estimate_blur_by_render(tr, sigmas=AUTO_SIGMAS, n_rays: int = AUTO_RAYS) -> 
         def parts(s: float) -> tuple[np.ndarray, np.ndarray]:
             """(a, b) of :func:`fit_illumination` with the patterns blurred by ``s`` (on a GPU the
             candidates were built before the clock: Trainer.prime)."""
-            proj = tr.rig.projection(dataclasses.replace(tr.proj, store=tr.blurred_store(s)))
+            proj = tr.rig.projection(dataclasses.replace(tr.proj, store=tr.blurred_store(s, keep=True)))
             return (render(proj, 0.0, 1.0) - c0)[keep].numpy(), (render(proj, 1.0, 0.0) - c0)[keep].numpy()
 
         ab = {float(s): parts(s) for s in sigmas}

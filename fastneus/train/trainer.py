@@ -33,6 +33,9 @@ from fastneus.data.response import decode_lut, is_identity, resolve_response
 
 
 PLAIN_EVERY_S = 5.0  # seconds between progress lines when stdout is not a terminal
+# host memory the CPU may spend keeping the pattern images and the blur estimate's blurred stores
+# (read and blurred once per run instead of once per candidate and round: ~1 s of a 30-s CPU run)
+HOST_PATTERN_CACHE = 64 << 20
 
 
 def _plain_line(rec: dict, done: int, total: int, timed: bool) -> str:
@@ -404,6 +407,8 @@ class Trainer:
         self.apply_camera_blur(float(info["sigma"]))
         if not self.blur_due:  # the last estimate: its candidates are not needed again
             self._blurred.clear()
+            if self.device.type == "cpu":
+                self._patterns = None
         if self.console is not None:
             self.console.print(self.blur_note(), soft_wrap=True, highlight=False, markup=False)
         return self.blur_decision
@@ -446,12 +451,13 @@ class Trainer:
 
     def pattern_images(self) -> dict:
         """The unblurred pattern images for the blur estimate's candidates and the chosen blur
-        (:func:`fastneus.train.rays.pattern_images`): kept on a GPU after the first call; read
-        again on the CPU (no second copy in host memory)."""
+        (:func:`fastneus.train.rays.pattern_images`): kept after the first call; read
+        again on the CPU only when they hold more than :data:`HOST_PATTERN_CACHE` bytes (a large
+        Gray-code set is not kept twice in host memory)."""
         if self._patterns is not None:
             return self._patterns
         pats = pattern_images(self.scene, self.frames, self.device)
-        if self.device.type != "cpu":
+        if self.device.type != "cpu" or sum(v.nbytes for v in pats.values()) <= HOST_PATTERN_CACHE:
             self._patterns = pats
         return pats
 
@@ -460,16 +466,19 @@ class Trainer:
         like ``self.proj.store``), from :meth:`pattern_images`.
 
         Args:
-            sigma: the blur. keep: on a GPU, keep it for the next call (the blur estimate's
-                candidates, built by :meth:`prime` before the clock: each estimate then only
-                renders; the stores are uint8, ~2.4 MB per 1024 x 768 pattern).
+            sigma: the blur. keep: keep it for the next call (the blur estimate's candidates: on
+                a GPU built by :meth:`prime` before the clock, so each estimate only renders; on
+                the CPU built by the first estimate and reused by the second while all kept
+                stores hold at most :data:`HOST_PATTERN_CACHE` bytes; uint8, ~2.4 MB per
+                1024 x 768 pattern).
         """
         key = round(float(sigma), 6)
         store = self._blurred.get(key)
         if store is None:
             store = build_projection(self.scene, self.frames, self.device, refraction=self.cfg.rig.refraction,
                                      camera_blur=sigma, patterns=self.pattern_images()).store
-            if keep and self.device.type != "cpu":
+            kept = sum(int(v.buffer.numel()) for v in self._blurred.values()) + int(store.buffer.numel())
+            if keep and (self.device.type != "cpu" or kept <= HOST_PATTERN_CACHE):
                 self._blurred[key] = store
         return store
 
