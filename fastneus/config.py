@@ -139,6 +139,12 @@ class OccupancySection:
     occ_warmup_frac: float = knob(0.2, "every cell occupied for this fraction of the run", **FRAC)
     occ_threshold: float = knob(0.01, "opacity above which a cell is occupied", lo=0.0)
     min_views: int = knob(2, "space seen by fewer distinct viewpoints is never occupied (0 = off)", lo=0)
+    hull: str = knob("auto", "space outside the masks' visual hull is empty: loss (the SDF is pushed positive there "
+                     "at the uniform points) | bound (loss, and the grid never occupies it) | off; auto = loss with "
+                     "masks (H200, Dark, masks, 3 s: a nut whose hole holds the initial sphere 23.0 -> 8.1 mm, other "
+                     "shapes within +-4 %; bound: rock 5 s 7.19 -> 6.14 but the nut and toy worse, CPU worse)",
+                     choices=("auto", "loss", "bound", "off"))
+    hull_weight: float = knob(1.0, "weight of the hull's free-space term (mean over the uniform points)", lo=0.0)
 
 
 @dataclass(frozen=True)

@@ -104,9 +104,8 @@ def _close(a, b, what):
             torch.testing.assert_close(x, y, rtol=1e-3, atol=1e-4, msg=what)
 
 
-@pytest.mark.parametrize("curvature", [False, True])
-def test_padded_device_schedule_step_matches_the_eager_step(small_scene, tmp_path, curvature):
-    extra = ["curvature_weight=0.001"] if curvature else []
+@pytest.mark.parametrize("extra", [[], ["curvature_weight=0.001"], ["hull=loss", "init_radius=0.95"]])
+def test_padded_device_schedule_step_matches_the_eager_step(small_scene, tmp_path, extra):
     a, b = _pair(small_scene, tmp_path, "cpu", extra)
     a.opt._scal = torch.zeros(len(a.opt.param_groups), 2)
     for p in (0.1, 0.2, 0.5):  # coarse-to-fine still opening levels at the first two
@@ -150,13 +149,14 @@ def test_device_schedule_gives_the_same_field_and_table_gradients(small_scene, t
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="CUDA graphs need a CUDA device")
-def test_cuda_replayed_graph_matches_the_eager_step(tmp_path):
+@pytest.mark.parametrize("extra", [[], ["hull=bound"]])
+def test_cuda_replayed_graph_matches_the_eager_step(tmp_path, extra):
     """Graph steps (first: eager on the side stream + capture; then replays) against eager
     steps on the same inputs: the same loss and parameters after every step. The scene is
     rendered on the GPU (no small_scene: a GPU machine may have no CPU compiler for Warp)."""
     from fastneus.train.graphstep import StepGraphs
 
-    a, b = _pair(scene_on(None, tmp_path, "cuda"), tmp_path, "cuda")
+    a, b = _pair(scene_on(None, tmp_path, "cuda"), tmp_path, "cuda", extra)
     a.field._dev_sched = False  # StepGraphs switches it on
     graphs = StepGraphs(a)
     # coarse-to-fine still opening levels (the kernels read the count at replay), then over; the

@@ -89,7 +89,8 @@ def render_rays(field, bits: torch.Tensor, grid_res: int, proj, origins: torch.T
     Returns:
         dict with color [B,3] ([B,K,3] for a [B,K] fidx), opacity [B], depth [B] (normalised t), texture [B,3],
         normal [B,3] (if asked), grad [S,3], curv [S] or None, n_samples (int); with
-        ``extra_points``: grad_all [S + E, 3] (the samples' gradients, then the extra points').
+        ``extra_points``: grad_all [S + E, 3] (the samples' gradients, then the extra points'), sdf_extra
+        [E] (the extra points' SDF).
     """
     smp = march_samples(bits, grid_res, origins, dirs, cfg, jitter=jitter)
     return shade_samples(field, smp, proj, origins, dirs, fidx, cfg, i_r=i_r, i_b=i_b, cos_anneal=cos_anneal,
@@ -118,7 +119,8 @@ def shade_samples(field, smp: dict, proj, origins: torch.Tensor, dirs: torch.Ten
     if smp["n_samples"] == 0:
         res = _empty(n, device, shots=fidx.shape[1] if fidx.dim() == 2 else 0)
         if extra_points is not None:
-            res["grad_all"] = field.sdf_and_grad(extra_points)[2]
+            f_extra, _, res["grad_all"], _ = field.sdf_and_grad(extra_points)
+            res["sdf_extra"] = f_extra.reshape(-1)
         return res
     ri = ray_index.long()
     d_s = dirs[ri]
@@ -127,6 +129,7 @@ def shade_samples(field, smp: dict, proj, origins: torch.Tensor, dirs: torch.Ten
         sdf, geo, grad, curv = field.sdf_and_grad(pos, with_curvature=curvature)
     else:
         sdf, geo, grad_all, curv = field.sdf_and_grad(torch.cat([pos, extra_points]), with_curvature=curvature)
+        sdf_extra = sdf[s:].reshape(-1)
         sdf, geo, grad = sdf[:s], geo[:s], grad_all[:s]
         curv = None if curv is None else curv[:s]
     color = field.color(pos, grad, d_s, geo)
@@ -178,7 +181,7 @@ def shade_samples(field, smp: dict, proj, origins: torch.Tensor, dirs: torch.Ten
         res["color"] = torch.stack(colors, 1)
     res["grad"], res["curv"], res["n_samples"] = grad, curv, smp["n_samples"]
     if extra_points is not None:
-        res["grad_all"] = grad_all
+        res["grad_all"], res["sdf_extra"] = grad_all, sdf_extra
     if with_normals:
         w = res["weights"].detach()
         nrm = grad.detach() / grad.detach().norm(dim=-1, keepdim=True).clamp_min(1e-6)

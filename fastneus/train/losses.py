@@ -8,7 +8,7 @@ from __future__ import annotations
 import torch
 
 # the order terms are summed in (fixed, so a run is reproducible bit for bit)
-TERMS = ("rgb", "eikonal", "mask", "background", "foreground", "prior", "curvature")
+TERMS = ("rgb", "eikonal", "mask", "background", "foreground", "prior", "curvature", "hull")
 
 
 def penalty(err: torch.Tensor, robust: str = "l1", eps: float = 0.01) -> torch.Tensor:

@@ -226,6 +226,9 @@ class Trainer:
             from fastneus.train.visibility import seen_cells
 
             self.seen = seen_cells(scene, self.frames, cfg.occupancy.occ_resolution, self.device, cfg.occupancy.min_views)
+        self.hull_out = None  # [R^3] float, 1 where the masks say the space is empty (occupancy.hull)
+        self.hull_note = self._masks_hull()
+        if self.seen is not None:
             self.grid.set_allowed(self.seen)
         ill = scene.illumination
         if cfg.illum.illum_init == "ones" or ill is None:
@@ -358,6 +361,33 @@ class Trainer:
     def cos_anneal(self, p: float | None = None) -> float:
         p = self.progress() if p is None else p
         return 1.0 if self.cfg.loss.cos_anneal_frac <= 0 else min(1.0, p / self.cfg.loss.cos_anneal_frac)
+
+    def _masks_hull(self) -> str:
+        """``occupancy.hull``: with masks, the space outside their visual hull (:func:`fastneus.train.
+        visibility.hull_cells`) is empty for sure: ``loss`` (``auto``) pushes the SDF positive there at
+        the eikonal term's uniform points, so a start that sits outside the object (the initial sphere
+        in a nut's hole) is carved from the first steps instead of by the photos over hundreds;
+        ``bound`` also keeps the grid from ever occupying it. Returns the printed note."""
+        c = self.cfg.occupancy
+        if c.hull == "off":
+            return "occupancy: hull off"
+        mode = "loss" if c.hull == "auto" else c.hull
+        if not self.masks_used:
+            return "occupancy: no masks, no hull"
+        if any(self.scene.frame_camera(i).port is not None for i in self.frames):
+            return "occupancy: no hull (a camera behind a flat port: its rays bend)"
+        from fastneus.train.visibility import hull_cells, seen_fraction
+
+        hull = hull_cells(self.scene, self.frames, c.occ_resolution, self.device)
+        if hull is None or not bool(hull.any()):
+            return "occupancy: no hull (no non-empty masks)"
+        seen = self.seen if self.seen is not None else torch.ones_like(hull)
+        self.hull_out = (seen & ~hull).float()
+        if mode == "bound":
+            self.seen = seen & hull
+        return (f"occupancy: hull {c.hull}{' -> ' + mode if c.hull == 'auto' else ''}: the masks' visual hull "
+                f"({100 * seen_fraction(seen & hull):.1f} % of the unit ball) "
+                f"{'bounds the grid, and ' if mode == 'bound' else ''}the SDF is pushed positive outside it")
 
     def update_grid(self, p: float) -> None:
         c = self.cfg
@@ -657,6 +687,11 @@ class Trainer:
         if self.prior is not None and p < c.init.prior_frac:
             w = losses.prior_fade(p, c.init.prior_weight, c.init.prior_frac)
             terms |= losses.surface_prior(self.prior.loss(self.field, fit_batch(c) // 2, self.gen, eikonal=False), w)
+        if self.hull_out is not None and c.occupancy.hull_weight > 0:
+            r = self.grid.resolution
+            ijk = ((xr + 1.0) * (r / 2.0)).long().clamp(0, r - 1)
+            out_hull = self.hull_out[ijk[:, 0] + ijk[:, 1] * r + ijk[:, 2] * (r * r)]
+            terms["hull"] = c.occupancy.hull_weight * (out_hull * torch.relu(-out["sdf_extra"])).mean()
         if c.loss.curvature_weight > 0 and out["curv"] is not None:
             cv = None if valid is None else valid[: out["curv"].shape[0]]
             terms |= losses.curvature(out["curv"], c.loss.curvature_weight, valid=cv)

@@ -65,3 +65,70 @@ def seen_fraction(mask: torch.Tensor) -> float:
     z, y, x = torch.meshgrid(lin, lin, lin, indexing="ij")
     inside = (x * x + y * y + z * z <= 1.0).reshape(-1).to(mask.device)
     return float((mask & inside).sum()) / max(1, int(inside.sum()))
+
+
+def hull_cells(scene, frames: list[int], resolution: int, device, misses: int | None = None) -> torch.Tensor | None:
+    """Cells of the [-1, 1]^3 occupancy grid inside the masks' visual hull, dilated by one cell.
+
+    A cell is inside a view's mask when its centre projects within the cell's projected
+    half-diagonal plus a pixel of a foreground pixel (mask >= 0.5): conservative, so a part one or
+    two pixels wide, or a mask's anti-aliased edge, keeps its cells. A view says nothing about the
+    cells that project outside its image or lie behind it, and an all-zero mask says nothing at all.
+    A cell is in the hull when at most ``misses`` views put it outside their masks (a mask that
+    misses a part in one view does not carve it from the volume).
+
+    Args:
+        scene: a loaded :class:`fastneus.data.Scene`.
+        frames: training frame indices; frames sharing a ``view`` count once (the first one's mask).
+        resolution: R, cells per axis (index x + y R + z R^2, as in ``OccupancyGrid``).
+        device: where the result lives.
+        misses: views allowed to disagree; None = a tenth of the masked views (at least 1 from
+            3 views on, 0 below).
+    Returns:
+        [R^3] bool, or None when a view has no mask or no view has a non-empty one.
+    """
+    import cv2
+
+    r = int(resolution)
+    dev = torch.device(device)
+    lin = (torch.arange(r, dtype=torch.float32, device=dev) + 0.5) * (2.0 / r) - 1.0
+    z, y, x = torch.meshgrid(lin, lin, lin, indexing="ij")
+    pts = torch.stack([x, y, z], -1).reshape(-1, 3)
+    S = torch.as_tensor(scene.normalisation(), dtype=torch.float32, device=dev)
+    world = pts @ S[:3, :3].T + S[:3, 3]
+    half = float(scene.bounds.radius) * np.sqrt(3.0) / r
+    views: dict[int, int] = {}
+    for i in frames:
+        views.setdefault(scene.frames[i].view, i)
+    outside = torch.zeros(pts.shape[0], dtype=torch.int32, device=dev)
+    used = 0
+    for i in views.values():
+        m = scene.mask(i)
+        if m is None:
+            return None
+        fg = m >= 0.5
+        if not fg.any():
+            continue
+        used += 1
+        # distance (px) from each pixel to the nearest foreground pixel
+        dist = torch.from_numpy(cv2.distanceTransform((~fg).astype(np.uint8), cv2.DIST_L2, 5)).to(dev)
+        cam = scene.frame_camera(i)
+        w2c = torch.as_tensor(scene.world_to_cam(i), dtype=torch.float32, device=dev)
+        K = torch.as_tensor(np.asarray(cam.K, dtype=np.float64), dtype=torch.float32, device=dev)
+        xc = world @ w2c[:3, :3].T + w2c[:3, 3]
+        zc = xc[:, 2]
+        uv = (xc @ K.T)[:, :2] / zc.clamp_min(1e-6)[:, None]
+        u, v = uv[:, 0].floor().long(), uv[:, 1].floor().long()
+        h, w = dist.shape
+        vis = (zc > 1e-6) & (u >= 0) & (u < w) & (v >= 0) & (v < h)
+        kn = np.asarray(cam.K, dtype=np.float64)
+        pad = float(max(kn[0, 0], kn[1, 1])) * half / zc.clamp_min(1e-6) + 1.0
+        d = torch.zeros_like(zc)
+        d[vis] = dist[v[vis], u[vis]]
+        outside += (vis & (d > pad)).to(torch.int32)
+    if used == 0:
+        return None
+    k = (used // 10 if used >= 10 else (1 if used >= 3 else 0)) if misses is None else int(misses)
+    hull = (outside <= k).reshape(1, 1, r, r, r).float()
+    hull = torch.nn.functional.max_pool3d(hull, 3, stride=1, padding=1)  # one-cell dilation
+    return hull.reshape(-1).bool()

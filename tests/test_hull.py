@@ -1,0 +1,150 @@
+"""The masks' visual hull (fastneus.train.visibility.hull_cells) and what training does with it
+(``occupancy.hull``: the SDF pushed positive outside it; ``bound``: the grid kept inside it)."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+import trimesh
+
+from fastneus.config import load_config
+from fastneus.synth.render import synthesize
+from fastneus.train.visibility import hull_cells, seen_cells
+
+from conftest import SMALL_RUN
+
+
+@pytest.fixture(scope="module")
+def torus_scene(tmp_path_factory):
+    """A torus (a hole through the middle, where the initial sphere sits) in 8 views with masks."""
+    return synthesize(tmp_path_factory.mktemp("hull") / "t", shape="torus", views=8, size=(48, 48), illum="normal",
+                      seed=3, progress=False, contact_sheet=False)
+
+
+def _gt_points(scene, n: int = 20000) -> torch.Tensor:
+    """GT surface samples in normalised space, [n, 3]."""
+    m = trimesh.load(scene.path(scene.gt_mesh))
+    p, _ = trimesh.sample.sample_surface(m, n, seed=int(np.random.default_rng().integers(1 << 30)))
+    b = scene.bounds
+    return torch.tensor((p - np.asarray(b.center)) / float(b.radius), dtype=torch.float32)
+
+
+def _cell(p: torch.Tensor, r: int) -> torch.Tensor:
+    ijk = ((p + 1.0) * (r / 2.0)).floor().long().clamp(0, r - 1)
+    return ijk[:, 0] + ijk[:, 1] * r + ijk[:, 2] * r * r
+
+
+def test_hull_holds_the_object_and_little_else(torus_scene):
+    s, r = torus_scene, 32
+    frames = list(range(len(s.frames)))
+    for misses in (0, None):
+        hull = hull_cells(s, frames, r, "cpu", misses=misses)
+        assert hull.dtype == torch.bool and hull.shape == (r ** 3,)
+        assert bool(hull[_cell(_gt_points(s), r)].all())  # conservative: every cell the surface crosses is in
+    # tight: a small multiple of the torus's volume (8 views on one orbit), and far less than the seen space
+    vol = trimesh.load(s.path(s.gt_mesh)).volume / float(s.bounds.radius) ** 3
+    hull = hull_cells(s, frames, r, "cpu", misses=0)
+    hull_vol = int(hull.sum()) * (2.0 / r) ** 3
+    assert vol < hull_vol < 6.0 * vol
+    assert int(hull.sum()) < 0.5 * int(seen_cells(s, frames, r, "cpu").sum())
+    # the hole through the torus's middle is outside (the centre cell, seen from the orbit's views)
+    assert not bool(hull[_cell(torch.zeros(1, 3), r)].any())
+
+
+def test_hull_ignores_empty_masks_and_tolerates_a_bad_one(torus_scene, monkeypatch):
+    s, r = torus_scene, 32
+    frames = list(range(len(s.frames)))
+    full = hull_cells(s, frames, r, "cpu", misses=0)
+    real = type(s).mask
+
+    def with_bad(kind):
+        def mask(self, i):
+            m = real(self, i)
+            if i == 0 and kind == "empty":
+                return np.zeros_like(m)
+            if i == 0 and kind == "cut":  # half of the object missing from one mask
+                m = m.copy()
+                m[:, : m.shape[1] // 2] = 0.0
+            return m
+        return mask
+
+    monkeypatch.setattr(type(s), "mask", with_bad("empty"))
+    empty = hull_cells(s, frames, r, "cpu", misses=0)
+    assert bool((empty | ~full).all()) and int(empty.sum()) >= int(full.sum())  # says nothing: no cell removed
+    monkeypatch.setattr(type(s), "mask", with_bad("cut"))
+    strict = hull_cells(s, frames, r, "cpu", misses=0)
+    tolerant = hull_cells(s, frames, r, "cpu", misses=1)
+    p = _cell(_gt_points(s), r)
+    assert not bool(strict[p].all())  # one bad mask carves the object when no view may disagree ...
+    assert bool(tolerant[p].all())  # ... and does not when one may
+    monkeypatch.setattr(type(s), "mask", lambda self, i: None if i == 1 else real(self, i))
+    assert hull_cells(s, frames, r, "cpu") is None  # a view without a mask: no hull
+
+
+def _trainer(scene, tmp_path, extra):
+    from fastneus.train.trainer import Trainer
+
+    cfg = load_config("cpu-quick", SMALL_RUN + ["occ_resolution=32", "threads=1"] + extra)
+    return Trainer(scene, cfg, tmp_path, "cpu")
+
+
+@pytest.mark.parametrize("mode", ["loss", "bound"])
+def test_hull_term_pushes_the_sdf_positive_outside_the_hull(torus_scene, tmp_path, mode):
+    """The initial sphere fills the torus's hole: the hull term is positive there and its gradient
+    raises the SDF at the uniform points outside the hull only; ``bound`` also narrows the grid."""
+    s = torus_scene
+    off = _trainer(s, tmp_path / "off", ["hull=off"])
+    tr = _trainer(s, tmp_path / mode, [f"hull={mode}"])
+    assert off.hull_out is None and "hull off" in off.hull_note
+    auto = _trainer(s, tmp_path / "auto", [])  # the default: the term, not the bound
+    assert auto.hull_out is not None and "hull auto -> loss" in auto.hull_note and torch.equal(auto.seen, off.seen)
+    assert tr.hull_out is not None and "visual hull" in tr.hull_note
+    if mode == "bound":
+        assert int(tr.seen.sum()) < int(off.seen.sum()) and bool((tr.seen <= off.seen).all())
+        assert int((tr.grid.allowed & (tr.hull_out > 0)).sum()) == 0  # never occupied outside the hull
+    else:
+        assert torch.equal(tr.seen, off.seen)
+    gen = torch.Generator().manual_seed(int(torch.randint(0, 2**31 - 1, (1,))))
+    batch = tr.rig.rays(tr.bank.sample(64, gen))
+    from fastneus.field.renderer import march_samples
+
+    tr.grid.update(tr.field.sdf, 0.0, tr.cfg.rays.march_step, warmup=True)
+    smp = march_samples(tr.grid.bits, tr.grid.resolution, batch["origins"], batch["dirs"], tr.cfg, jitter=False)
+    xr = torch.rand(4000, 3, generator=gen) * 2 - 1
+    loss, terms = tr.step_loss(batch, xr, smp, 0.5)
+    with torch.no_grad():
+        f = tr.field.sdf(xr).reshape(-1)
+    r = tr.grid.resolution
+    out = tr.hull_out[_cell(xr, r)]
+    want = float(tr.cfg.occupancy.hull_weight * (out * torch.relu(-f)).mean())
+    assert float(terms["hull"].detach()) == pytest.approx(want, rel=1e-4, abs=1e-7) and want > 0  # the sphere in the hole
+    # the same points through shade_samples' extra-point path give the same SDF values
+    from fastneus.field.renderer import shade_samples
+
+    res = shade_samples(tr.field, smp, tr.rig.projection(), batch["origins"], batch["dirs"], batch["fidx"], tr.cfg,
+                        i_r=torch.tensor(0.4), i_b=torch.tensor(0.1), cos_anneal=1.0, extra_points=xr)
+    assert torch.allclose(res["sdf_extra"].detach(), f, atol=1e-5)
+    # its gradient alone: a descent step raises f where the hull says empty and f < 0
+    params = [tr.field.table] + list(tr.field.sdf_net.parameters())
+    opt = torch.optim.SGD(params, lr=0.05)
+    neg = (out > 0) & (f < 0)
+    for _ in range(3):
+        opt.zero_grad(set_to_none=True)
+        (tr.cfg.occupancy.hull_weight * (out * torch.relu(-tr.field.sdf(xr).reshape(-1))).mean()).backward()
+        opt.step()
+    with torch.no_grad():
+        f2 = tr.field.sdf(xr).reshape(-1)
+    assert float(f2[neg].mean()) > float(f[neg].mean())
+    assert float(loss.detach()) > float(terms["hull"].detach()) > 0
+
+
+def test_hull_needs_masks(small_scene, tmp_path):
+    from fastneus.data import Scene
+
+    s = Scene.load(small_scene)
+    tr = _trainer(s, tmp_path / "a", ["masks=off", "hull=loss"])
+    assert tr.hull_out is None and "no masks" in tr.hull_note
+    tr = _trainer(s, tmp_path / "b", ["hull=loss"])  # masks on: the term exists and a step runs
+    assert tr.hull_out is not None
+    for _ in range(2):
+        tr.train_step()
