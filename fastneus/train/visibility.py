@@ -11,6 +11,32 @@ import numpy as np
 import torch
 
 
+
+def _cell_centres(scene, resolution: int, device, dtype) -> tuple[torch.Tensor, float]:
+    """World positions [R^3, 3] of the occupancy grid's cell centres (index x + y R + z R^2) and a
+    cell's half-diagonal in world units."""
+    r = int(resolution)
+    lin = (torch.arange(r, dtype=dtype, device=device) + 0.5) * (2.0 / r) - 1.0
+    z, y, x = torch.meshgrid(lin, lin, lin, indexing="ij")
+    pts = torch.stack([x, y, z], -1).reshape(-1, 3)
+    S = torch.as_tensor(scene.normalisation(), dtype=dtype, device=device)
+    return pts @ S[:3, :3].T + S[:3, 3], float(scene.bounds.radius) * np.sqrt(3.0) / r
+
+
+def _project(scene, i: int, world: torch.Tensor, half: float) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Frame ``i``'s pixel coordinates uv [N, 2] and depth z [N] of ``world`` points, and each point's
+    projected ``half`` (a cell's half-diagonal) in pixels [N]."""
+    cam = scene.frame_camera(i)
+    dt, dev = world.dtype, world.device
+    w2c = torch.as_tensor(scene.world_to_cam(i), dtype=dt, device=dev)
+    K = torch.as_tensor(np.asarray(cam.K, dtype=np.float64), dtype=dt, device=dev)
+    xc = world @ w2c[:3, :3].T + w2c[:3, 3]
+    zc = xc[:, 2]
+    uv = (xc @ K.T)[:, :2] / zc.clamp_min(1e-6)[:, None]
+    kn = np.asarray(cam.K, dtype=np.float64)  # (no device sync for two numbers)
+    return uv, zc, float(max(kn[0, 0], kn[1, 1])) * half / zc.clamp_min(1e-6)
+
+
 def seen_cells(scene, frames: list[int], resolution: int, device, min_views: int = 2) -> torch.Tensor:
     """Cells of the [-1, 1]^3 occupancy grid inside the view frustums of at least ``min_views``
     distinct viewpoints (capped at the number of viewpoints), dilated by one cell.
@@ -29,27 +55,15 @@ def seen_cells(scene, frames: list[int], resolution: int, device, min_views: int
     """
     r = int(resolution)
     dev = torch.device(device)  # computed where it is used: R^3 x views float64 takes seconds on a host CPU
-    lin = (torch.arange(r, dtype=torch.float64, device=dev) + 0.5) * (2.0 / r) - 1.0
-    z, y, x = torch.meshgrid(lin, lin, lin, indexing="ij")          # index x + y R + z R^2
-    pts = torch.stack([x, y, z], -1).reshape(-1, 3)                  # [R^3, 3] normalised
-    S = torch.as_tensor(scene.normalisation(), dtype=torch.float64, device=dev)
-    world = pts @ S[:3, :3].T + S[:3, 3]
-    half = float(scene.bounds.radius) * np.sqrt(3.0) / r           # cell half-diagonal (world)
+    world, half = _cell_centres(scene, r, dev, torch.float64)
     seen_views: dict[int, int] = {}
     for i in frames:
         seen_views.setdefault(scene.frames[i].view, i)
-    count = torch.zeros(pts.shape[0], dtype=torch.int32, device=dev)
+    count = torch.zeros(world.shape[0], dtype=torch.int32, device=dev)
     for i in seen_views.values():
         cam = scene.frame_camera(i)
-        w2c = torch.as_tensor(scene.world_to_cam(i), dtype=torch.float64, device=dev)
-        K = torch.as_tensor(cam.K, dtype=torch.float64, device=dev)
-        xc = world @ w2c[:3, :3].T + w2c[:3, 3]
-        zc = xc[:, 2]
-        front = zc > 1e-6
-        uv = (xc @ K.T)[:, :2] / zc.clamp_min(1e-6)[:, None]
-        kn = np.asarray(cam.K, dtype=np.float64)                          # (no device sync for two numbers)
-        pad = float(max(kn[0, 0], kn[1, 1])) * half / zc.clamp_min(1e-6)
-        inside = front & (uv[:, 0] > -pad) & (uv[:, 0] < cam.width + pad) & (uv[:, 1] > -pad) & \
+        uv, zc, pad = _project(scene, i, world, half)
+        inside = (zc > 1e-6) & (uv[:, 0] > -pad) & (uv[:, 0] < cam.width + pad) & (uv[:, 1] > -pad) & \
             (uv[:, 1] < cam.height + pad)
         count += inside.to(torch.int32)
     need = max(1, min(int(min_views), len(seen_views)))
@@ -91,16 +105,11 @@ def hull_cells(scene, frames: list[int], resolution: int, device, misses: int | 
 
     r = int(resolution)
     dev = torch.device(device)
-    lin = (torch.arange(r, dtype=torch.float32, device=dev) + 0.5) * (2.0 / r) - 1.0
-    z, y, x = torch.meshgrid(lin, lin, lin, indexing="ij")
-    pts = torch.stack([x, y, z], -1).reshape(-1, 3)
-    S = torch.as_tensor(scene.normalisation(), dtype=torch.float32, device=dev)
-    world = pts @ S[:3, :3].T + S[:3, 3]
-    half = float(scene.bounds.radius) * np.sqrt(3.0) / r
+    world, half = _cell_centres(scene, r, dev, torch.float32)
     views: dict[int, int] = {}
     for i in frames:
         views.setdefault(scene.frames[i].view, i)
-    outside = torch.zeros(pts.shape[0], dtype=torch.int32, device=dev)
+    outside = torch.zeros(world.shape[0], dtype=torch.int32, device=dev)
     used = 0
     for i in views.values():
         m = scene.mask(i)
@@ -112,23 +121,16 @@ def hull_cells(scene, frames: list[int], resolution: int, device, misses: int | 
         used += 1
         # distance (px) from each pixel to the nearest foreground pixel
         dist = torch.from_numpy(cv2.distanceTransform((~fg).astype(np.uint8), cv2.DIST_L2, 5)).to(dev)
-        cam = scene.frame_camera(i)
-        w2c = torch.as_tensor(scene.world_to_cam(i), dtype=torch.float32, device=dev)
-        K = torch.as_tensor(np.asarray(cam.K, dtype=np.float64), dtype=torch.float32, device=dev)
-        xc = world @ w2c[:3, :3].T + w2c[:3, 3]
-        zc = xc[:, 2]
-        uv = (xc @ K.T)[:, :2] / zc.clamp_min(1e-6)[:, None]
+        uv, zc, pad = _project(scene, i, world, half)
         u, v = uv[:, 0].floor().long(), uv[:, 1].floor().long()
         h, w = dist.shape
         vis = (zc > 1e-6) & (u >= 0) & (u < w) & (v >= 0) & (v < h)
-        kn = np.asarray(cam.K, dtype=np.float64)
-        pad = float(max(kn[0, 0], kn[1, 1])) * half / zc.clamp_min(1e-6) + 1.0
         d = torch.zeros_like(zc)
         d[vis] = dist[v[vis], u[vis]]
-        outside += (vis & (d > pad)).to(torch.int32)
+        outside += (vis & (d > pad + 1.0)).to(torch.int32)
     if used == 0:
         return None
-    k = (used // 10 if used >= 10 else (1 if used >= 3 else 0)) if misses is None else int(misses)
+    k = (0 if used < 3 else max(1, used // 10)) if misses is None else int(misses)
     hull = (outside <= k).reshape(1, 1, r, r, r).float()
     hull = torch.nn.functional.max_pool3d(hull, 3, stride=1, padding=1)  # one-cell dilation
     return hull.reshape(-1).bool()
