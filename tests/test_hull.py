@@ -9,7 +9,7 @@ import trimesh
 
 from fastneus.config import load_config
 from fastneus.synth.render import synthesize
-from fastneus.train.visibility import hull_cells, seen_cells
+from fastneus.train.visibility import consistent_hull, hull_cells, hull_uncovered, seen_cells
 
 from conftest import SMALL_RUN
 
@@ -79,6 +79,40 @@ def test_hull_ignores_empty_masks_and_tolerates_a_bad_one(torus_scene, monkeypat
     assert bool(tolerant[p].all())  # ... and does not when one may
     monkeypatch.setattr(type(s), "mask", lambda self, i: None if i == 1 else real(self, i))
     assert hull_cells(s, frames, r, "cpu") is None  # a view without a mask: no hull
+
+
+def test_consistent_hull_widens_for_a_calibration_that_is_off(torus_scene):
+    """Poses off by a few degrees: the plain hull carves part of the torus, and leaves foreground
+    pixels that no hull cell projects onto; the consistent hull widens until it covers them and
+    then holds the whole surface. Exact poses: the plain hull, nothing uncovered."""
+    from fastneus.synth.perturb import perturb_scene
+
+    s, r = torus_scene, 32
+    frames = list(range(len(s.frames)))
+    hull, pad, worst = consistent_hull(s, frames, r, "cpu")
+    assert pad == 0.0 and worst == 0.0 and torch.equal(hull, hull_cells(s, frames, r, "cpu"))
+    assert max(hull_uncovered(s, frames, hull)) == 0.0
+    off = perturb_scene(s, 4.0, 0.08, seed=1)
+    p = _cell(_gt_points(off), r)
+    plain = hull_cells(off, frames, r, "cpu")
+    assert not bool(plain[p].all()) and max(hull_uncovered(off, frames, plain)) > 0.002
+    wide, pad, worst = consistent_hull(off, frames, r, "cpu")
+    assert pad > 0 and worst <= 0.002 and bool(wide[p].all())
+    assert torch.equal(wide, hull_cells(off, frames, r, "cpu", extra_pad=pad))
+    assert bool((wide | ~plain).all())  # wider: every plain-hull cell kept
+    far = perturb_scene(s, 20.0, 0.4, seed=1)  # nothing consistent: no hull rather than a carved object
+    none, pad, worst = consistent_hull(far, frames, r, "cpu")
+    assert none is None and worst > 0.002
+
+
+def test_trainer_widens_or_drops_the_hull_and_says_so(torus_scene, tmp_path):
+    from fastneus.synth.perturb import perturb_scene
+
+    s = torus_scene
+    wide = _trainer(perturb_scene(s, 4.0, 0.08, seed=1), tmp_path / "w", [])
+    assert wide.hull_out is not None and "widened by" in wide.hull_note
+    far = _trainer(perturb_scene(s, 20.0, 0.4, seed=1), tmp_path / "f", [])
+    assert far.hull_out is None and "disagree" in far.hull_note
 
 
 def _trainer(scene, tmp_path, extra):

@@ -367,7 +367,9 @@ class Trainer:
         visibility.hull_cells`) is empty for sure: ``loss`` (``auto``) pushes the SDF positive there at
         the eikonal term's uniform points, so a start that sits outside the object (the initial sphere
         in a nut's hole) is carved from the first steps instead of by the photos over hundreds;
-        ``bound`` also keeps the grid from ever occupying it. Returns the printed note."""
+        ``bound`` also keeps the grid from ever occupying it. The hull is the tightest one whose
+        projection covers every mask (:func:`fastneus.train.visibility.consistent_hull`: widened for
+        poses that are off, none when they are far off). Returns the printed note."""
         c = self.cfg.occupancy
         if c.hull == "off":
             return "occupancy: hull off"
@@ -376,17 +378,21 @@ class Trainer:
             return "occupancy: no masks, no hull"
         if any(self.scene.frame_camera(i).port is not None for i in self.frames):
             return "occupancy: no hull (a camera behind a flat port: its rays bend)"
-        from fastneus.train.visibility import hull_cells, seen_fraction
+        from fastneus.train.visibility import consistent_hull, seen_fraction
 
-        hull = hull_cells(self.scene, self.frames, c.occ_resolution, self.device)
+        hull, pad, worst = consistent_hull(self.scene, self.frames, c.occ_resolution, self.device)
+        if hull is None and worst > 0:
+            return (f"occupancy: no hull (the masks and the poses disagree: {100 * worst:.1f} % of a view's mask "
+                    f"lies outside the hull even at {pad:g} px of extra pad)")
         if hull is None or not bool(hull.any()):
             return "occupancy: no hull (no non-empty masks)"
+        widened = f", widened by {pad:g} px to cover every view's mask" if pad > 0 else ""
         seen = self.seen if self.seen is not None else torch.ones_like(hull)
         self.hull_out = (seen & ~hull).float()
         if mode == "bound":
             self.seen = seen & hull
         return (f"occupancy: hull {c.hull}{' -> ' + mode if c.hull == 'auto' else ''}: the masks' visual hull "
-                f"({100 * seen_fraction(seen & hull):.1f} % of the unit ball) "
+                f"({100 * seen_fraction(seen & hull):.1f} % of the unit ball{widened}) "
                 f"{'bounds the grid, and ' if mode == 'bound' else ''}the SDF is pushed positive outside it")
 
     def update_grid(self, p: float) -> None:
