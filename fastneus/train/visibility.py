@@ -122,9 +122,10 @@ def _hull_excess(scene, masks: list[tuple[int, np.ndarray]], r: int, dev, misses
         u, v = uv[:, 0].floor().long(), uv[:, 1].floor().long()
         h, w = dist.shape
         vis = (zc > 1e-6) & (u >= 0) & (u < w) & (v >= 0) & (v < h)
-        ex = torch.full_like(zc, -math.inf)
-        ex[vis] = dist[v[vis], u[vis]] - pad[vis] - 1.0
-        top = torch.topk(torch.cat([top, ex[None]]), k + 1, dim=0).values
+        # clamped gather + where instead of boolean indexing: ~2x faster on a host CPU
+        d = dist.reshape(-1)[v.clamp(0, h - 1) * w + u.clamp(0, w - 1)]
+        ex = torch.where(vis, d - pad - 1.0, torch.full_like(d, -math.inf))
+        top = torch.topk(torch.cat([top, ex[None]]), k + 1, dim=0).values if k > 0 else torch.maximum(top, ex[None])
     return top.min(0).values
 
 
