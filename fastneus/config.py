@@ -145,9 +145,6 @@ class OccupancySection:
                      "shapes within +-4 %; bound: rock 5 s 7.19 -> 6.14 but the nut and toy worse, CPU worse)",
                      choices=("auto", "loss", "bound", "off"))
     hull_weight: float = knob(1.0, "weight of the hull's free-space term (mean over the uniform points)", lo=0.0)
-    hull_refresh_frac: float = knob(0.5, "with pose_refine: the hull is rebuilt from the refined poses at this "
-                                    "fraction of the run (the given poses' hull is widened for their error; 1 = never)",
-                                    **FRAC)
 
 
 @dataclass(frozen=True)

@@ -327,7 +327,6 @@ def _train_and_finish(trainer, scene, cfg: Config, out: Path, device: str, conso
     # decided during the run (camera_blur=auto, exposure=auto): the decisions and their printed lines
     _update_run_json(out, {"camera_blur": trainer.blur_decision, "camera_blur_note": trainer.blur_note(),
                            "exposure": trainer.exposure_decision, "exposure_note": trainer.exposure_note(),
-                           "occupancy_hull": trainer.hull_note,  # a hull rebuilt from refined poses says so
                            **({"cuda_graphs": last["cuda_graphs"]} if last and "cuda_graphs" in last else {})})
     if console is not None and last:
         console.print(f"trained {trainer.step} steps in {trainer.elapsed:.1f}s: loss {last['loss']:.4f}, "

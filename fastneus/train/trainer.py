@@ -227,11 +227,7 @@ class Trainer:
 
             self.seen = seen_cells(scene, self.frames, cfg.occupancy.occ_resolution, self.device, cfg.occupancy.min_views)
         self.hull_out = None  # [R^3] float, 1 where the masks say the space is empty (occupancy.hull)
-        self._seen_base = self.seen  # before the hull narrows it (hull=bound)
         self.hull_note = self._masks_hull()
-        # with pose refinement the hull follows the refined poses once they have settled
-        self.hull_refresh_due = cfg.occupancy.hull_refresh_frac if (
-            self.hull_out is not None and self.rig.pose_on and cfg.occupancy.hull_refresh_frac < 1.0) else None
         if self.seen is not None:
             self.grid.set_allowed(self.seen)
         ill = scene.illumination
@@ -398,35 +394,6 @@ class Trainer:
         return (f"occupancy: hull {c.hull}{' -> ' + mode if c.hull == 'auto' else ''}: the masks' visual hull "
                 f"({100 * seen_fraction(seen & hull):.1f} % of the unit ball{widened}) "
                 f"{'bounds the grid, and ' if mode == 'bound' else ''}the SDF is pushed positive outside it")
-
-    def refresh_hull(self) -> str:
-        """Rebuild the masks' hull from the refined poses (``pose_refine``; at ``hull_refresh_frac``):
-        the given poses' hull was widened for their error (:func:`fastneus.train.visibility.
-        consistent_hull`), the refined ones are closer to the masks, so the hull can be tighter. The
-        term's tensor is updated in place (a captured step holds it); a hull that no longer covers
-        the masks switches the term off. Printed; appended to :attr:`hull_note`. Returns the note."""
-        from fastneus.train.visibility import consistent_hull
-
-        self.hull_refresh_due = None
-        s = self.rig.refined_scene()
-        hull, pad, worst = consistent_hull(s, list(range(len(s.frames))), self.cfg.occupancy.occ_resolution,
-                                           self.device)
-        seen = self._seen_base if self._seen_base is not None else torch.ones_like(self.hull_out, dtype=torch.bool)
-        with torch.no_grad():
-            if hull is None:
-                self.hull_out.zero_()
-            else:
-                self.hull_out.copy_((seen & ~hull).float())
-        if self.cfg.occupancy.hull == "bound":
-            self.seen = seen & hull if hull is not None else self._seen_base
-            self.grid.set_allowed(self.seen)
-        note = (f"rebuilt at step {self.step} from the refined poses: " +
-                ("no hull (the masks and the refined poses disagree)" if hull is None else
-                 f"widened by {pad:g} px" if pad > 0 else "covers every mask as built"))
-        self.hull_note += f"; {note}"
-        if self.console is not None:
-            self.console.print(f"occupancy: hull {note}", soft_wrap=True, highlight=False, markup=False)
-        return note
 
     def update_grid(self, p: float) -> None:
         c = self.cfg
@@ -606,8 +573,6 @@ class Trainer:
             self.decide_exposure()
         if self.blur_due and p >= self.blur_due[0]:
             self.decide_camera_blur()
-        if self.hull_refresh_due is not None and p >= self.hull_refresh_due:
-            self.refresh_hull()
         self.field.set_progress(p)
         self.update_grid(p)
         self._set_lr(p)
