@@ -145,6 +145,9 @@ class OccupancySection:
                      "shapes within +-4 %; bound: rock 5 s 7.19 -> 6.14 but the nut and toy worse, CPU worse)",
                      choices=("auto", "loss", "bound", "off"))
     hull_weight: float = knob(1.0, "weight of the hull's free-space term (mean over the uniform points)", lo=0.0)
+    hull_margin: int = knob(0, "the free-space term acts only this many grid cells beyond the hull (coarse hash "
+                            "levels are shared across a few cells: a thin part next to the pushed space is pushed too)",
+                            lo=0, hi=16)
 
 
 @dataclass(frozen=True)

@@ -182,3 +182,16 @@ def test_hull_needs_masks(small_scene, tmp_path):
     assert tr.hull_out is not None
     for _ in range(2):
         tr.train_step()
+
+
+def test_hull_margin_keeps_the_term_away_from_the_hull(torus_scene, tmp_path):
+    """``hull_margin=m``: the term's space is the plain one less every cell within m cells of the
+    hull (a thin part beside it shares the coarse hash levels with the pushed points)."""
+    r = 32
+    plain = _trainer(torus_scene, tmp_path / "p", ["hull=loss", "hull_margin=0"]).hull_out.bool()
+    wide = _trainer(torus_scene, tmp_path / "w", ["hull=loss", "hull_margin=2"]).hull_out.bool()
+    hull = hull_cells(torus_scene, list(range(len(torus_scene.frames))), r, "cpu")
+    near = torch.nn.functional.max_pool3d(hull.reshape(1, 1, r, r, r).float(), 5, stride=1, padding=2).reshape(-1).bool()
+    assert bool((wide & ~plain).sum() == 0) and int(wide.sum()) < int(plain.sum())
+    assert not bool((wide & near).any()) and bool((plain & near).any())
+    assert torch.equal(wide, plain & ~near)

@@ -388,7 +388,12 @@ class Trainer:
             return "occupancy: no hull (no non-empty masks)"
         widened = f", widened by {pad:g} px to cover every view's mask" if pad > 0 else ""
         seen = self.seen if self.seen is not None else torch.ones_like(hull)
-        self.hull_out = (seen & ~hull).float()
+        term = hull
+        if c.hull_margin > 0:  # the term's space starts hull_margin cells beyond the hull
+            r, m = c.occ_resolution, int(c.hull_margin)
+            term = torch.nn.functional.max_pool3d(hull.reshape(1, 1, r, r, r).float(), 2 * m + 1, stride=1,
+                                                  padding=m).reshape(-1).bool()
+        self.hull_out = (seen & ~term).float()
         if mode == "bound":
             self.seen = seen & hull
         return (f"occupancy: hull {c.hull}{' -> ' + mode if c.hull == 'auto' else ''}: the masks' visual hull "
