@@ -378,7 +378,7 @@ class Trainer:
             return "occupancy: no masks, no hull"
         if any(self.scene.frame_camera(i).port is not None for i in self.frames):
             return "occupancy: no hull (a camera behind a flat port: its rays bend)"
-        from fastneus.train.visibility import consistent_hull, seen_fraction
+        from fastneus.train.visibility import consistent_hull, dilate_cells, seen_fraction
 
         hull, pad, worst = consistent_hull(self.scene, self.frames, c.occ_resolution, self.device)
         if hull is None and worst > 0:
@@ -388,11 +388,8 @@ class Trainer:
             return "occupancy: no hull (no non-empty masks)"
         widened = f", widened by {pad:g} px to cover every view's mask" if pad > 0 else ""
         seen = self.seen if self.seen is not None else torch.ones_like(hull)
-        term = hull
-        if c.hull_margin > 0:  # the term's space starts hull_margin cells beyond the hull
-            r, m = c.occ_resolution, int(c.hull_margin)
-            term = torch.nn.functional.max_pool3d(hull.reshape(1, 1, r, r, r).float(), 2 * m + 1, stride=1,
-                                                  padding=m).reshape(-1).bool()
+        # the term's space starts hull_margin cells beyond the hull
+        term = dilate_cells(hull, int(c.hull_margin)) if c.hull_margin > 0 else hull
         self.hull_out = (seen & ~term).float()
         if mode == "bound":
             self.seen = seen & hull

@@ -13,6 +13,12 @@ import numpy as np
 import torch
 
 
+def dilate_cells(cells: torch.Tensor, m: int = 1) -> torch.Tensor:
+    """[R^3] bool grid cells grown by ``m`` cells in every direction (a (2m+1)^3 max filter)."""
+    r = round(cells.numel() ** (1 / 3))
+    grown = torch.nn.functional.max_pool3d(cells.reshape(1, 1, r, r, r).float(), 2 * m + 1, stride=1, padding=m)
+    return grown.reshape(-1).bool()
+
 
 def _cell_centres(scene, resolution: int, device, dtype) -> tuple[torch.Tensor, float]:
     """World positions [R^3, 3] of the occupancy grid's cell centres (index x + y R + z R^2) and a
@@ -69,9 +75,7 @@ def seen_cells(scene, frames: list[int], resolution: int, device, min_views: int
             (uv[:, 1] < cam.height + pad)
         count += inside.to(torch.int32)
     need = max(1, min(int(min_views), len(seen_views)))
-    seen = (count >= need).reshape(1, 1, r, r, r).float()
-    seen = torch.nn.functional.max_pool3d(seen, 3, stride=1, padding=1)  # one-cell dilation
-    return seen.reshape(-1).bool().to(device)
+    return dilate_cells(count >= need).to(device)
 
 
 def seen_fraction(mask: torch.Tensor) -> float:
@@ -99,7 +103,8 @@ def _hull_masks(scene, frames: list[int]) -> list[tuple[int, np.ndarray]] | None
     return out
 
 
-def _hull_excess(scene, masks: list[tuple[int, np.ndarray]], r: int, dev, misses: int | None) -> torch.Tensor | None:
+def _hull_excess(scene, masks: list[tuple[int, np.ndarray]], world: torch.Tensor, half: float,
+                 misses: int | None) -> torch.Tensor | None:
     """Per cell of the grid, how far (px) beyond its conservative pad it falls outside the masks of
     the view that disagrees most after the ``misses`` tolerated ones: [R^3] float (the (k+1)-th
     largest excess over the masked views, -inf where fewer views than that put it outside), or None
@@ -109,7 +114,7 @@ def _hull_excess(scene, masks: list[tuple[int, np.ndarray]], r: int, dev, misses
 
     if not masks:
         return None
-    world, half = _cell_centres(scene, r, dev, torch.float32)
+    dev = world.device
     used = len(masks)
     k = (0 if used < 3 else max(1, used // 10)) if misses is None else int(misses)
     if k >= used:
@@ -129,10 +134,8 @@ def _hull_excess(scene, masks: list[tuple[int, np.ndarray]], r: int, dev, misses
     return top.min(0).values
 
 
-def _hull_from_excess(excess: torch.Tensor, r: int, extra_pad: float) -> torch.Tensor:
-    hull = (excess <= float(extra_pad)).reshape(1, 1, r, r, r).float()
-    hull = torch.nn.functional.max_pool3d(hull, 3, stride=1, padding=1)  # one-cell dilation
-    return hull.reshape(-1).bool()
+def _hull_from_excess(excess: torch.Tensor, extra_pad: float) -> torch.Tensor:
+    return dilate_cells(excess <= float(extra_pad))
 
 
 def hull_cells(scene, frames: list[int], resolution: int, device, misses: int | None = None,
@@ -158,10 +161,12 @@ def hull_cells(scene, frames: list[int], resolution: int, device, misses: int | 
     Returns:
         [R^3] bool, or None when a view has no mask or no view has a non-empty one.
     """
-    r = int(resolution)
     masks = _hull_masks(scene, frames)
-    excess = None if masks is None else _hull_excess(scene, masks, r, torch.device(device), misses)
-    return None if excess is None else _hull_from_excess(excess, r, extra_pad)
+    if masks is None:
+        return None
+    excess = _hull_excess(scene, masks, *_cell_centres(scene, int(resolution), torch.device(device), torch.float32),
+                          misses)
+    return None if excess is None else _hull_from_excess(excess, extra_pad)
 
 
 def hull_uncovered(scene, frames: list[int], hull: torch.Tensor) -> list[float]:
@@ -175,14 +180,17 @@ def hull_uncovered(scene, frames: list[int], hull: torch.Tensor) -> list[float]:
         One share in [0, 1] per masked view (frames sharing a ``view`` once).
     """
     masks = _hull_masks(scene, frames)
-    return [] if masks is None else _uncovered(scene, masks, hull)
+    if masks is None:
+        return []
+    return _uncovered(scene, masks, hull, *_cell_centres(scene, round(hull.numel() ** (1 / 3)), hull.device,
+                                                         torch.float32))
 
 
-def _uncovered(scene, masks: list[tuple[int, np.ndarray]], hull: torch.Tensor) -> list[float]:
+def _uncovered(scene, masks: list[tuple[int, np.ndarray]], hull: torch.Tensor, world: torch.Tensor,
+               half: float) -> list[float]:
+    """:func:`hull_uncovered` on loaded masks and the grid's cell centres ``world`` [R^3, 3]."""
     import cv2
 
-    r = round(hull.numel() ** (1 / 3))
-    world, half = _cell_centres(scene, r, hull.device, torch.float32)
     world = world[hull]
     out = []
     for i, fg in masks:
@@ -219,15 +227,17 @@ def consistent_hull(scene, frames: list[int], resolution: int, device, pads=HULL
     Returns:
         (hull [R^3] bool or None, the extra pad used (px), the worst view's uncovered share at it).
     """
-    r = int(resolution)
     masks = _hull_masks(scene, frames)
-    excess = None if masks is None else _hull_excess(scene, masks, r, torch.device(device), None)
+    if masks is None:
+        return None, 0.0, 0.0
+    world, half = _cell_centres(scene, int(resolution), torch.device(device), torch.float32)  # once for every width
+    excess = _hull_excess(scene, masks, world, half, None)
     if excess is None:
         return None, 0.0, 0.0
     worst = 0.0
     for e in pads:
-        hull = _hull_from_excess(excess, r, e)
-        worst = max(_uncovered(scene, masks, hull) or [0.0])
+        hull = _hull_from_excess(excess, e)
+        worst = max(_uncovered(scene, masks, hull, world, half) or [0.0])
         if worst <= tol:
             return hull, float(e), worst
     return None, float(pads[-1]), worst
