@@ -65,12 +65,19 @@ def test_auto_learns_gains_only_when_the_photos_differ(tmp_path):
     d = tr.exposure_decision
     true = np.log(np.asarray(varied.meta["capture"]["gains"]))
     assert d["learned"] and d["spread"] > SPREAD_ON, d
-    # the gains start at the fit, which follows the true gains (on this tiny scene the field has
-    # absorbed part of each photo's gain by then, so the fit's error against the truth varies with
-    # the seed, 0.06-0.10 mean |log error| against 0.103 for "all 1"; its correlation with the
-    # truth was 0.60-0.77 over seeds 0-2)
+    # the gains start at the fit, which follows the true gains: the fit renders each surface as
+    # seen along its normal, so the view-dependent colour network, which by now has fitted part of
+    # each photo's gain as a view effect, cannot hide it (measured on this scene at the decision:
+    # spread 0.104 and correlation 0.92 with the truth, against 0.089 and 0.70 with the photos' own
+    # view directions; the true spread 0.131)
+    from fastneus.train.exposure import estimate_exposure
+
     start = np.concatenate([[0.0], tr.log_gain.detach().numpy()])
-    assert np.corrcoef(start[1:], (true - true[0])[1:])[0, 1] > 0.4, (start, true)
+    t = true - true[0]
+    assert np.corrcoef(start[1:], t[1:])[0, 1] > 0.85, (start, true)
+    view = estimate_exposure(tr, canonical=False)  # the same state, the colour as each photo sees it
+    assert view["spread"] < d["spread"] - 0.01, (view["spread"], d["spread"])
+    assert np.corrcoef(np.asarray(view["log_gains"])[1:], t[1:])[0, 1] < 0.8
     assert "learned per photo" in tr.exposure_note()
     g = {p["name"]: p for p in tr.opt.param_groups}["exposure"]
     tr.train_step()

@@ -101,7 +101,8 @@ def render_rays(field, bits: torch.Tensor, grid_res: int, proj, origins: torch.T
 def shade_samples(field, smp: dict, proj, origins: torch.Tensor, dirs: torch.Tensor, fidx: torch.Tensor, cfg, *,
                   i_r: torch.Tensor, i_b: torch.Tensor, cos_anneal: float, with_normals: bool = False,
                   curvature: bool = False, use_pattern: bool | None = None,
-                  extra_points: torch.Tensor | None = None, lit: bool = False) -> dict:
+                  extra_points: torch.Tensor | None = None, lit: bool = False,
+                  canonical_view: bool = False) -> dict:
     """The field at the samples of :func:`march_samples` and their NeuS compositing with the
     projected light (arguments and result as :func:`render_rays`; ``lit``: also ``lit`` [B],
     the projected light (summed over channels and projectors) at each ray's rendered surface,
@@ -132,7 +133,10 @@ def shade_samples(field, smp: dict, proj, origins: torch.Tensor, dirs: torch.Ten
         sdf_extra = sdf[s:].reshape(-1)
         sdf, geo, grad = sdf[:s], geo[:s], grad_all[:s]
         curv = None if curv is None else curv[:s]
-    color = field.color(pos, grad, d_s, geo)
+    # canonical_view: every sample's colour as seen along its own normal, the same for every photo
+    # (a view-dependent colour network can otherwise stand in for a photo's exposure gain)
+    d_col = -torch.nn.functional.normalize(grad, dim=-1) if canonical_view else d_s
+    color = field.color(pos, grad, d_col, geo)
     pattern_on = cfg.illum.use_pattern if use_pattern is None else use_pattern
     pat = proj.pattern if pattern_on else torch.full_like(proj.pattern, -1)
     blur, lights = getattr(proj, "blur", None), getattr(proj, "lights", None) or {}
