@@ -117,6 +117,13 @@ def test_trainer_uses_shot_bank_and_trains(gray, tmp_path):
     for _ in range(6):
         tr.train_step()
     assert tr.step == 6 and tr.skipped == 0
+    # the exposure estimate on rays that carry several shots: one value row per (ray, shot), every
+    # photo's gain relative to the first
+    from fastneus.train.exposure import estimate_exposure
+
+    e = estimate_exposure(tr)
+    assert len(e["log_gains"]) == len(tr.frames) and e["log_gains"][0] == 0.0 and e["rays"] > 0
+    assert e["spread"] >= 0.0 and np.isfinite(e["log_gains"]).all()
     flat = load_config("cpu-quick", ["group_shots=false"])
     assert isinstance(make_bank(gray, [0, 1, 12], "cpu", flat), RayBank)
     # pose refinement indexes per-frame camera tables: it takes the per-frame bank

@@ -97,15 +97,16 @@ def estimate_exposure(tr, n_rays: int = AUTO_RAYS, canonical: bool = True) -> di
 
     Args:
         tr: the :class:`fastneus.train.trainer.Trainer` (field, grid, rig, bank, illumination).
-        n_rays: rays in the batch, uniform over the photos' pixels (:func:`fastneus.train.blurfit.
-            diagnostic_batch`: at most 16 x ``rays.max_rays``).
+        n_rays: rays in each of the :data:`SPLITS` batches, uniform over the photos' pixels
+            (:func:`fastneus.train.blurfit.diagnostic_batch`: at most 16 x ``rays.max_rays``).
         canonical: render every surface's colour as seen along its normal, one colour for all the
             photos that see it. By the decision the view-dependent colour network has fitted part
             of each photo's gain as a view effect (H200, rock +-25 %: the spread of the gains
             against the render 0.032-0.038 at 20 % of a 10-s run against 0.118 true, so the gains
             were never learned); the canonical render leaves it to the gains (0.110-0.115).
     Returns:
-        {"spread": std of the log-gains, "log_gains": [F] relative to the first photo, "rays",
+        {"spread": the batches' agreed spread of the log-gains (:func:`split_gain_spread`),
+        "log_gains": [F] relative to the first photo (fit on all batches), "rays" (all batches),
         "seconds"}.
     """
     import time
@@ -118,7 +119,7 @@ def estimate_exposure(tr, n_rays: int = AUTO_RAYS, canonical: bool = True) -> di
     t0 = time.perf_counter()
     cfg = tr.cfg
     n_frames = len(tr.frames)
-    ys, preds, fids, groups = [], [], [], []
+    ys, preds, fids, groups, rays = [], [], [], [], 0
     with torch.no_grad():
         i_r, i_b = tr.illumination()
         for k in range(SPLITS):  # independent batches: their fits' noise differs, a true gain does not
@@ -129,6 +130,7 @@ def estimate_exposure(tr, n_rays: int = AUTO_RAYS, canonical: bool = True) -> di
                                 cfg, i_r=i_r, i_b=i_b, cos_anneal=tr.cos_anneal(), canonical_view=canonical)
             pred = tr.rig.composite(out["color"], out, cfg.rays.background).clamp(max=1.0)
             c = pred.shape[-1]  # multi-shot rays carry [B, K] frames: one value row per (ray, shot)
+            rays += int(batch["rgb"].shape[0])
             ys.append(batch["rgb"].reshape(-1, c).cpu().numpy())
             preds.append(pred.reshape(-1, c).cpu().numpy())
             fids.append(batch["fidx"].reshape(-1).cpu().numpy())
@@ -138,4 +140,4 @@ def estimate_exposure(tr, n_rays: int = AUTO_RAYS, canonical: bool = True) -> di
     spread, logs, _ = split_gain_spread(np.concatenate(ys), np.concatenate(preds), np.concatenate(fids),
                                         np.concatenate(groups), n_frames)
     return {"spread": round(spread, 5), "log_gains": [round(float(v), 5) for v in logs],
-            "rays": int(sum(len(f) for f in fids)), "seconds": round(time.perf_counter() - t0, 3)}
+            "rays": rays, "seconds": round(time.perf_counter() - t0, 3)}
