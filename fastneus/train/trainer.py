@@ -485,7 +485,8 @@ class Trainer:
             return "exposure: auto, decided at {:.0f} % of the run".format(100 * self.cfg.illum.exposure_at_frac)
         verdict = "learned per photo" if d["learned"] else "one exposure for all photos"
         return (f"exposure: auto -> {verdict} (the photos' gains against the render spread by "
-                f"{100 * d['spread']:.1f} % at step {d['step']}; threshold {100 * SPREAD_ON:.0f} %)")
+                f"{100 * d['spread']:.1f} % at step {d['step']}, as four ray batches agree; threshold "
+                f"{100 * SPREAD_ON:.0f} %)")
 
     def pattern_images(self) -> dict:
         """The unblurred pattern images for the blur estimate's candidates and the chosen blur
