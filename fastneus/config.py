@@ -261,7 +261,8 @@ class IllumSection:
     exposure: str = knob("auto", "learn a gain per photo (auto-exposure; the first training frame's is 1): auto "
                          "(at exposure_at_frac of the run, each photo's gain is fit against a render seen along each "
                          "surface's normal, on four ray batches; learned from then on when the batches agree on a "
-                         "spread > 6 %: on fixed-exposure captures learning them cost accuracy) | on | off", choices=("auto", "on", "off"), model=True)
+                         "spread > 6 %: on fixed-exposure captures learning them cost accuracy) | on | off",
+                         choices=("auto", "on", "off"), model=True)
     exposure_at_frac: float = knob(0.2, "exposure=auto: fraction of the run at which it is decided", **FRAC)
     lr_exposure: float = knob(1e-2, "learning rate of the per-photo log-gains", lo=0.0)
 

@@ -14,7 +14,8 @@ from __future__ import annotations
 
 import numpy as np
 
-SPREAD_ON = 0.06  # std of the photos' log-gains above which they are learned (split_gain_spread; see the measured values in docs/REAL-RIGS.md)
+# std of the photos' log-gains above which they are learned (split_gain_spread; measured: docs/REAL-RIGS.md)
+SPREAD_ON = 0.06
 SPLITS = 4  # independent ray batches whose gain fits are compared (split_gain_spread)
 AUTO_RAYS = 16384  # training rays rendered for the decision
 _FLOOR = 0.01  # rendered values below this (linear) say little about a gain: left out
@@ -54,13 +55,7 @@ def fit_frame_gains(y: np.ndarray, pred: np.ndarray, fidx: np.ndarray, n_frames:
     return np.where(ok, logs - ref, 0.0), counts
 
 
-def gain_spread(log_gains: np.ndarray, counts: np.ndarray) -> float:
-    """Standard deviation of the fitted log-gains over the photos with enough values."""
-    ok = counts >= _MIN_VALUES
-    return float(np.std(log_gains[ok])) if ok.sum() >= 2 else 0.0
-
-
-def split_gain_spread(y: np.ndarray, pred: np.ndarray, fidx: np.ndarray, half: np.ndarray,
+def split_gain_spread(y: np.ndarray, pred: np.ndarray, fidx: np.ndarray, group: np.ndarray,
                       n_frames: int) -> tuple[float, np.ndarray, np.ndarray]:
     """How much the photos' gains differ, with most of the fit's own noise taken out.
 
@@ -74,12 +69,13 @@ def split_gain_spread(y: np.ndarray, pred: np.ndarray, fidx: np.ndarray, half: n
 
     Args:
         y, pred: [N, C] photo and rendered values (linear). fidx: [N] training-frame row of each
-            value row. half: [N] the group (0, 1, ...) of each row. n_frames: F.
+            value row. group: [N] the batch (0, 1, ...) of each row. n_frames: F.
     Returns:
         (spread, log_gains [F] fit on all rows relative to the first photo, counts [F]).
     """
     logs, counts = fit_frame_gains(y, pred, fidx, n_frames)
-    fits = [fit_frame_gains(y[half == k], pred[half == k], fidx[half == k], n_frames) for k in range(int(half.max()) + 1)]
+    fits = [fit_frame_gains(y[group == k], pred[group == k], fidx[group == k], n_frames)
+            for k in range(int(group.max()) + 1)]
     covs = []
     for i in range(len(fits)):
         for j in range(i + 1, len(fits)):
@@ -122,12 +118,13 @@ def estimate_exposure(tr, n_rays: int = AUTO_RAYS, canonical: bool = True) -> di
     ys, preds, fids, groups, rays = [], [], [], [], 0
     with torch.no_grad():
         i_r, i_b = tr.illumination()
+        proj, cos_anneal = tr.rig.projection(), tr.cos_anneal()
         for k in range(SPLITS):  # independent batches: their fits' noise differs, a true gain does not
             batch, smp = diagnostic_batch(tr, n_rays, 29 + k)
             if smp["n_samples"] == 0:
                 continue
-            out = shade_samples(tr.field, smp, tr.rig.projection(), batch["origins"], batch["dirs"], batch["fidx"],
-                                cfg, i_r=i_r, i_b=i_b, cos_anneal=tr.cos_anneal(), canonical_view=canonical)
+            out = shade_samples(tr.field, smp, proj, batch["origins"], batch["dirs"], batch["fidx"], cfg,
+                                i_r=i_r, i_b=i_b, cos_anneal=cos_anneal, canonical_view=canonical)
             pred = tr.rig.composite(out["color"], out, cfg.rays.background).clamp(max=1.0)
             c = pred.shape[-1]  # multi-shot rays carry [B, K] frames: one value row per (ray, shot)
             rays += int(batch["rgb"].shape[0])

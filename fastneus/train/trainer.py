@@ -476,7 +476,7 @@ class Trainer:
 
     def exposure_note(self) -> str:
         """One line on the per-photo exposure gains (printed; run.json keeps :attr:`exposure_decision`)."""
-        from fastneus.train.exposure import SPREAD_ON
+        from fastneus.train.exposure import SPLITS, SPREAD_ON
 
         d = self.exposure_decision
         if d["mode"] != "auto":
@@ -485,7 +485,7 @@ class Trainer:
             return "exposure: auto, decided at {:.0f} % of the run".format(100 * self.cfg.illum.exposure_at_frac)
         verdict = "learned per photo" if d["learned"] else "one exposure for all photos"
         return (f"exposure: auto -> {verdict} (the photos' gains against the render spread by "
-                f"{100 * d['spread']:.1f} % at step {d['step']}, as four ray batches agree; threshold "
+                f"{100 * d['spread']:.1f} % at step {d['step']}, as {SPLITS} ray batches agree; threshold "
                 f"{100 * SPREAD_ON:.0f} %)")
 
     def pattern_images(self) -> dict:

@@ -134,10 +134,6 @@ def _hull_excess(scene, masks: list[tuple[int, np.ndarray]], world: torch.Tensor
     return top.min(0).values
 
 
-def _hull_from_excess(excess: torch.Tensor, extra_pad: float) -> torch.Tensor:
-    return dilate_cells(excess <= float(extra_pad))
-
-
 def hull_cells(scene, frames: list[int], resolution: int, device, misses: int | None = None,
                extra_pad: float = 0.0) -> torch.Tensor | None:
     """Cells of the [-1, 1]^3 occupancy grid inside the masks' visual hull, dilated by one cell.
@@ -166,7 +162,7 @@ def hull_cells(scene, frames: list[int], resolution: int, device, misses: int | 
         return None
     excess = _hull_excess(scene, masks, *_cell_centres(scene, int(resolution), torch.device(device), torch.float32),
                           misses)
-    return None if excess is None else _hull_from_excess(excess, extra_pad)
+    return None if excess is None else dilate_cells(excess <= float(extra_pad))
 
 
 def hull_uncovered(scene, frames: list[int], hull: torch.Tensor) -> list[float]:
@@ -236,7 +232,7 @@ def consistent_hull(scene, frames: list[int], resolution: int, device, pads=HULL
         return None, 0.0, 0.0
     worst = 0.0
     for e in pads:
-        hull = _hull_from_excess(excess, e)
+        hull = dilate_cells(excess <= float(e))
         worst = max(_uncovered(scene, masks, hull, world, half) or [0.0])
         if worst <= tol:
             return hull, float(e), worst
