@@ -18,6 +18,7 @@ import json
 import sys
 from pathlib import Path
 
+import fastneus  # noqa: F401 - before torch: it sets torch's OpenMP spin (GOMP_SPINCOUNT), read when torch loads
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))

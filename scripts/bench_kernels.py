@@ -11,6 +11,7 @@ import argparse
 import math
 from pathlib import Path
 
+import fastneus  # noqa: F401 - before torch: it sets torch's OpenMP spin (GOMP_SPINCOUNT), read when torch loads
 import torch
 
 from benchutil import ROOT, command_line, md_table, provenance, provenance_line, ratio, time_fn, update_section, write_json

@@ -16,6 +16,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+import fastneus  # noqa: F401 - before torch: it sets torch's OpenMP spin (GOMP_SPINCOUNT), read when torch loads
 import torch
 
 from benchutil import command_line, md_table, median, provenance_line, ratio, sync, write_results

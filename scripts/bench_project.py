@@ -14,6 +14,7 @@ import argparse
 import importlib.util
 import time
 
+import fastneus  # noqa: F401 - before torch: it sets torch's OpenMP spin (GOMP_SPINCOUNT), read when torch loads
 import torch
 
 from benchutil import median, ratio, sync

@@ -37,6 +37,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+import fastneus  # noqa: F401 - before torch: it sets torch's OpenMP spin (GOMP_SPINCOUNT), read when torch loads
 import torch
 
 from benchutil import (ROOT, cached_scene, command_line, default_preset, md_table, provenance_line,

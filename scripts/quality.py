@@ -35,6 +35,7 @@ import json
 import time
 from pathlib import Path
 
+import fastneus  # noqa: F401 - before torch: it sets torch's OpenMP spin (GOMP_SPINCOUNT), read when torch loads
 import torch
 
 from benchutil import (ROOT, cached_scene, command_line, default_preset, md_table, median, provenance_line,

@@ -48,6 +48,7 @@ import argparse
 import time
 from pathlib import Path
 
+import fastneus  # noqa: F401 - before torch: it sets torch's OpenMP spin (GOMP_SPINCOUNT), read when torch loads
 import torch
 
 from benchutil import default_preset, git_rev, machine, md_table, write_results

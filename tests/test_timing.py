@@ -128,3 +128,28 @@ def test_import_shortens_openmp_spin_before_torch_loads():
     assert _spin_after_import({}) == ["30000", "False"]
     assert _spin_after_import({"GOMP_SPINCOUNT": "7"})[0] == "7"
     assert _spin_after_import({"OMP_WAIT_POLICY": "ACTIVE"})[0] == "None"
+
+
+def test_scripts_import_fastneus_before_torch():
+    # a benchmark that loads torch first runs its CPU ops with libgomp's long default spin, which
+    # holds the core the Warp kernels' second thread needs: its thread numbers would not be the
+    # product's (2026-11-28: step_profile, speed_compare and quality.py all did)
+    import ast
+
+    scripts = Path(__file__).resolve().parents[1] / "scripts"
+    late = []
+    for p in sorted(scripts.glob("*.py")):
+        first = {}
+        for node in ast.parse(p.read_text()).body:  # module-level imports, in order
+            names = [a.name for a in node.names] if isinstance(node, ast.Import) else \
+                [node.module or ""] if isinstance(node, ast.ImportFrom) else []
+            for n in names:
+                root = n.split(".")[0]
+                if root in ("torch", "fastneus", "benchutil"):
+                    first.setdefault(root, node.lineno)
+        fast = min((first[k] for k in ("fastneus", "benchutil") if k in first), default=None)
+        if "torch" in first and (fast is None or fast > first["torch"]) and p.name != "benchutil.py":
+            late.append(p.name)
+        if p.name == "benchutil.py" and "torch" in first and first.get("fastneus", 10**9) > first["torch"]:
+            late.append(p.name)
+    assert not late, f"import fastneus before torch in: {late}"
