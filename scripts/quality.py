@@ -18,7 +18,10 @@ views of ``--size`` px, object ~2 m across at 4 m; shapes:
 - ``toy``: the built-in composite (cup, 2-cm fin, torus, sphere).
 
 Captures: ``ideal`` (the linear image model, quantised) and ``realistic`` (``fastneus synth
---realistic``: sRGB, +-25% exposure, speckle, highlights, defocus, vignetting, noise, saturation).
+--realistic``: sRGB, +-25% exposure, speckle, highlights, defocus, vignetting, noise, saturation);
+``realistic:KEY=VALUE[:...]`` changes fields of that mix (``fastneus.synth.capture.Capture``:
+``realistic:blur=0`` a sharp lens, ``realistic:speckle=0``, ``realistic:response=linear``, ...), to
+find which effect costs what.
 
 Metrics (mm; F-score at 1% of the GT bounding-box diagonal): Chamfer GT->rec (the paper's
 number), the same with the paper's 1-sigma filter, rec->GT (floaters show here), symmetric,
@@ -50,21 +53,49 @@ SHORT = {"chamfer_gt2rec_mm": "GT->rec", "chamfer_gt2rec_filtered_mm": "1-sigma"
          "psnr_texture": "tex PSNR", "exposure_err": "gain err"}
 
 
+def parse_capture(capture: str) -> dict | None:
+    """A ``--captures`` entry as synth's capture options: None for ``ideal``, ``{}`` for ``realistic``
+    (synth --realistic), ``{"blur": 0.0, ...}`` for ``realistic:blur=0:...`` (the realistic mix with
+    those :class:`fastneus.synth.capture.Capture` fields changed: one effect left out at a time)."""
+    if capture == "ideal":
+        return None
+    head, *parts = capture.split(":")
+    if head != "realistic":
+        raise SystemExit(f"--captures: unknown capture {capture!r}; use ideal, realistic or realistic:KEY=VALUE[:...]")
+    opts = {}
+    for part in parts:
+        key, eq, val = part.partition("=")
+        if not eq or not key:
+            raise SystemExit(f"--captures: {capture!r}: expected KEY=VALUE after 'realistic:', got {part!r}")
+        try:
+            opts[key] = float(val)
+        except ValueError:
+            opts[key] = val  # response=linear | srgb | gamma=G
+    from fastneus.errors import FastneusError
+    from fastneus.synth.capture import make_capture
+
+    try:
+        make_capture(opts, realistic=True)  # unknown keys and bad values: one line, before any rendering
+    except FastneusError as e:
+        raise SystemExit(f"--captures: {capture!r}: {e}") from None
+    return opts
+
+
 def scene_dir(cache: Path, shape: str, illum: str, views: int, size: int, capture: str = "ideal") -> Path:
-    return cache / f"{shape}-{illum}{views}-{size}{'' if capture == 'ideal' else '-' + capture}"
+    tag = "" if capture == "ideal" else "-" + "".join(c if c.isalnum() or c in "-." else "-" for c in capture)
+    return cache / f"{shape}-{illum}{views}-{size}{tag}"
 
 
 def make_scene(cache: Path, shape: str, illum: str, views: int, size: int, device: str, assets: Path,
                capture: str = "ideal"):
     """Synthesise (once) and load a matrix scene."""
-    if capture not in ("ideal", "realistic"):
-        raise SystemExit(f"--captures: unknown capture {capture!r}; use ideal, realistic")
+    opts = parse_capture(capture)
     d = scene_dir(cache, shape, illum, views, size, capture)
     src = dict(shape=shape) if shape in BUILTIN else dict(mesh=assets / f"{shape}.ply")
     if not (d / "scene.json").is_file() and "mesh" in src and not src["mesh"].is_file():
         raise SystemExit(f"{src['mesh']}: missing; run `python scripts/assets.py` once (needs usd-core)")
     return cached_scene(d, views=views, size=(size, size), illum=illum, pattern="crosslaser", seed=0, device=device,
-                        contact_sheet=True, realistic=capture == "realistic", **src)
+                        contact_sheet=True, realistic=opts is not None, capture=opts or None, **src)
 
 
 def run_cell(scene, device: str, budget: float, masks: str, extra: list[str], out: Path) -> dict:
@@ -136,7 +167,7 @@ def summarise(rows: list[dict], budgets: list[float]) -> tuple[str, dict]:
     ratios_floater, ratios_nomask, ratios_real = [], [], []
     for (v, s, il, cp, mk, b), r in by.items():
         ideal = by.get((v, s, il, "ideal", mk, b))
-        if cp == "realistic" and ideal and ideal.get("chamfer_sym_mm") and r.get("chamfer_sym_mm"):
+        if cp.startswith("realistic") and ideal and ideal.get("chamfer_sym_mm") and r.get("chamfer_sym_mm"):
             ratios_real.append(r["chamfer_sym_mm"] / ideal["chamfer_sym_mm"])
         if mk == "off" and r.get("chamfer_gt2rec_mm"):
             ratios_floater.append(r["chamfer_rec2gt_mm"] / r["chamfer_gt2rec_mm"])
@@ -163,7 +194,8 @@ def main() -> None:
     ap.add_argument("--shapes", default="bunny,rock,toy,bear")
     ap.add_argument("--illums", default="normal,dark")
     ap.add_argument("--masks", default="on,off")
-    ap.add_argument("--captures", default="ideal", help="ideal, realistic (synth --realistic), or both")
+    ap.add_argument("--captures", default="ideal", help="ideal, realistic (synth --realistic), realistic:KEY=VALUE[:...] (the realistic mix with "
+                         "synth capture options changed, e.g. realistic:blur=0 for a sharp lens); comma-separated")
     ap.add_argument("--budgets", default=None, help="seconds (default 5,10,20,60 on GPU, 30,60,120 on CPU)")
     ap.add_argument("--size", type=int, default=200)
     ap.add_argument("--views", type=int, default=20)
@@ -186,6 +218,8 @@ def main() -> None:
     if args.cell:
         run_one_cell(args.device, json.loads(args.cell))
         return
+    for cap in args.captures.split(","):  # a bad capture stops here, not after the cells before it ran
+        parse_capture(cap)
 
     gpu = args.device.startswith("cuda")
     isolate = args.isolate == "on" or (args.isolate == "auto" and gpu)
