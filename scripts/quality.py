@@ -67,18 +67,15 @@ def parse_capture(capture: str) -> dict | None:
         key, eq, val = part.partition("=")
         if not eq or not key:
             raise SystemExit(f"--captures: {capture!r}: expected KEY=VALUE after 'realistic:', got {part!r}")
-        try:
-            opts[key] = float(val)
-        except ValueError:
-            opts[key] = val  # response=linear | srgb | gamma=G
+        opts[key] = val
     from fastneus.errors import FastneusError
     from fastneus.synth.capture import make_capture
 
-    try:
-        make_capture(opts, realistic=True)  # unknown keys and bad values: one line, before any rendering
+    try:  # synth's own validation and conversion: unknown keys and bad values are one line, before any rendering
+        cap = make_capture(opts, realistic=True)
     except FastneusError as e:
         raise SystemExit(f"--captures: {capture!r}: {e}") from None
-    return opts
+    return {k: getattr(cap, k) for k in opts}
 
 
 def scene_dir(cache: Path, shape: str, illum: str, views: int, size: int, capture: str = "ideal") -> Path:
@@ -194,7 +191,8 @@ def main() -> None:
     ap.add_argument("--shapes", default="bunny,rock,toy,bear")
     ap.add_argument("--illums", default="normal,dark")
     ap.add_argument("--masks", default="on,off")
-    ap.add_argument("--captures", default="ideal", help="ideal, realistic (synth --realistic), realistic:KEY=VALUE[:...] (the realistic mix with "
+    ap.add_argument("--captures", default="ideal",
+                    help="ideal, realistic (synth --realistic), realistic:KEY=VALUE[:...] (the realistic mix with "
                          "synth capture options changed, e.g. realistic:blur=0 for a sharp lens); comma-separated")
     ap.add_argument("--budgets", default=None, help="seconds (default 5,10,20,60 on GPU, 30,60,120 on CPU)")
     ap.add_argument("--size", type=int, default=200)

@@ -8,8 +8,9 @@ The target's own measure: the same command a user runs, ``fastneus train SCENE -
 (1, 2, 1, 2, ...: a VM whose speed drifts hits both alike). A 2-core VM's one-thread step count
 moves by +-10 % from run to run, so one pair says little: the script reports every run, the
 ratio of each round (same position in the interleaving) and the ratio of the medians. Extra
-``key=value`` arguments go to every run. Writes ``OUT/threads-bench.json`` and ``.md`` (default OUT /tmp/fastneus-threads-bench)
-(machine, commit, command); each run's folder is replaced (``--overwrite``) under ``--runs``.
+``key=value`` arguments go to every run. Writes ``OUT/threads-bench.json`` and ``.md`` (machine,
+commit, command; default OUT /tmp/fastneus-threads-bench); each run's folder is replaced
+(``--overwrite``) under ``--runs``.
 """
 from __future__ import annotations
 
