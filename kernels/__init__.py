@@ -89,3 +89,14 @@ def configure_threads(requested: int | None = 0, torch_threads: bool = True) -> 
 
         torch.set_num_threads(n)
     return n, f"threads: {n} ({why}; Warp kernels{' and torch' if torch_threads else ''})"
+
+
+def run_on_threads(tasks) -> None:
+    """Run zero-argument callables on the CPU thread pool the split Warp launches use.
+
+    Returns when all are done (the first exception is re-raised). ``scripts/split_overhead.py``
+    times the pool's hand-off with no-op tasks.
+    """
+    from ._warp import run_tasks
+
+    run_tasks(list(tasks))

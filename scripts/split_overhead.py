@@ -44,15 +44,15 @@ def parse_sizes(text: str) -> list[int]:
 
 def measure(threads: int, sizes: list[int], repeat: int) -> dict:
     """The round trip and the per-size rows (milliseconds, medians over ``repeat`` calls)."""
-    from fastneus.kernels import _warp
-    from fastneus.kernels.hashgrid import HashGridConfig, hash_encode
+    from fastneus.kernels import configure_threads, get_op, run_on_threads
+    from fastneus.kernels.hashgrid import HashGridConfig
 
-    _warp.init()
+    hash_encode = get_op("hash_encode")
     saved = torch.get_num_threads()
     noop = [lambda: None] * threads
-    with _warp.threads(threads):
-        _warp.run_tasks(noop)  # the pool's threads exist before the clock
-        round_trip = time_fn(lambda: _warp.run_tasks(noop), "cpu", warmup=5, repeat=repeat * 4)
+    configure_threads(threads, torch_threads=False)
+    run_on_threads(noop)  # the pool's threads exist before the clock
+    round_trip = time_fn(lambda: run_on_threads(noop), "cpu", warmup=5, repeat=repeat * 4)
     cfg = HashGridConfig(levels=8, log2_table=15, finest_res=256)
     table = torch.randn(cfg.levels, cfg.table_size, cfg.features, generator=torch.Generator().manual_seed(0)) * 1e-2
     rows = []
@@ -60,9 +60,9 @@ def measure(threads: int, sizes: list[int], repeat: int) -> dict:
         u = torch.rand(n, 3, generator=torch.Generator().manual_seed(n))
         row = {"points": n}
         for t, name in ((1, "hash 1 thread ms"), (threads, f"hash {threads} threads ms")):
-            with _warp.threads(t):
-                hash_encode(u, table, cfg)  # first launch per kernel is serial (module load)
-                row[name] = time_fn(lambda: hash_encode(u, table, cfg), "cpu", repeat=repeat)
+            configure_threads(t, torch_threads=False)
+            hash_encode(u, table, cfg)  # the first launch of a kernel is serial (its module loads)
+            row[name] = time_fn(lambda: hash_encode(u, table, cfg), "cpu", repeat=repeat)
         row["hash speed-up"] = row["hash 1 thread ms"] / max(row[f"hash {threads} threads ms"], 1e-9)
         x = torch.rand(n * cfg.levels * cfg.features)
         for t, name in ((1, "exp 1 thread ms"), (threads, f"exp {threads} threads ms")):
@@ -70,7 +70,7 @@ def measure(threads: int, sizes: list[int], repeat: int) -> dict:
             row[name] = time_fn(lambda: torch.exp(x), "cpu", repeat=repeat)
         row["exp speed-up"] = row["exp 1 thread ms"] / max(row[f"exp {threads} threads ms"], 1e-9)
         rows.append(row)
-    torch.set_num_threads(saved)
+    configure_threads(saved)
     return {"threads": threads, "pool_round_trip_ms": round_trip, "rows": rows}
 
 
