@@ -123,7 +123,9 @@ def test_realistic_scene_states_response_and_keeps_linear_truth(tmp_path, ideal)
 
 @pytest.mark.parametrize("opts, field", [({"speckle": -0.1}, "capture.speckle"), ({"blur": float("nan")}, "capture.blur"),
                                          ({"response": "gama=2"}, "capture.response"),
-                                         ({"sparkle": 1}, "capture.sparkle")])
+                                         ({"sparkle": 1}, "capture.sparkle"),
+                                         ({"interreflection": 5}, "capture.interreflection"),
+                                         ({"interreflection": -0.5}, "capture.interreflection")])
 def test_bad_capture_options(opts, field):
     with pytest.raises(FastneusError) as e:
         make_capture(opts)
@@ -142,3 +144,55 @@ def test_thin_shapes_are_closed(name):
     assert m.is_watertight and len(m.faces) > 100
     if name == "hexnut":  # one part with a hole through it: genus 1
         assert m.euler_number == 0 and m.is_volume
+
+
+def test_interreflection_adds_nothing_on_a_convex_shape(tmp_path):
+    """A sphere sees no other surface: every bounce ray misses, the photos are unchanged."""
+    _, ref, _ = _render(tmp_path, "lin", {"response": "linear"})
+    scene, img, _ = _render(tmp_path, "ir", {"response": "linear", "interreflection": 1.0})
+    np.testing.assert_array_equal(img, ref)
+    assert scene.meta["capture"]["interreflection"] == 1.0
+
+
+@pytest.mark.parametrize("illum", ["normal", "dark"])
+def test_interreflection_lights_the_parts_that_see_each_other(tmp_path, illum):
+    """The toy's cup, fin, torus and ball light each other: photos and pattern-free images only get
+    brighter, by a visible amount somewhere; in a dark room the lasers' light is bounced too (the
+    photos gain more than the pattern-free images)."""
+    opts = dict(SMALL, shape="toy", illum=illum)
+    out = {}
+    for name, ir in (("off", 0.0), ("on", 1.0)):
+        sc = synthesize(tmp_path / f"{illum}-{name}", capture={"response": "linear", "interreflection": ir}, **opts)
+        imgs = np.stack([sc.image(i) for i in range(len(sc.frames))]).astype(np.float64) / 255.0
+        clean = np.stack([sc.gt_clean(i) for i in range(len(sc.frames))]).astype(np.float64) / 255.0
+        masks = np.stack([sc.mask(i) > 0.5 for i in range(len(sc.frames))])
+        out[name] = (imgs, clean, masks)
+    (i0, c0, m), (i1, c1, _) = out["off"], out["on"]
+    gain, gain_clean = (i1 - i0)[m], (c1 - c0)[m]
+    assert gain.min() >= -1.5 / 255 and gain_clean.min() >= -1.5 / 255  # light is only added
+    assert gain.max() > 0.05 and (gain.max(-1) > 2 / 255).mean() > 0.1
+    if illum == "dark":
+        assert (gain - gain_clean).max() > 0.02  # laser light reflected onto another part
+    else:
+        assert gain_clean.max() > 0.05  # the room's light bounced: part of the pattern-free truth
+
+
+def test_interreflection_under_water_is_refused(tmp_path):
+    with pytest.raises(FastneusError) as e:
+        synthesize(tmp_path / "wet", capture={"interreflection": 1.0}, medium="water", **SMALL)
+    assert e.value.field == "capture.interreflection"
+
+
+def test_synth_command_takes_interreflection(tmp_path, capsys):
+    from fastneus.cli import main
+
+    out = tmp_path / "cli"
+    assert main(["synth", "--shape", "sphere", "--views", "1", "--size", "32x32", "--device", "cpu",
+                 "--response", "linear", "--interreflection", "0.5", "--no-contact-sheet", "--out", str(out)]) == 0
+    meta = json.loads((out / "scene.json").read_text())["meta"]["capture"]
+    assert meta["interreflection"] == 0.5 and meta["response"] == "linear"
+    capsys.readouterr()
+    assert main(["synth", "--shape", "sphere", "--views", "1", "--size", "32x32", "--device", "cpu",
+                 "--interreflection", "9", "--out", str(tmp_path / "bad")]) == 2
+    err = capsys.readouterr().err
+    assert "capture.interreflection" in err and "Traceback" not in err

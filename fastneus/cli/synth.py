@@ -50,7 +50,9 @@ def register(subparsers) -> None:
                        ("supersample", "with defocus: rays per pixel side, the pixel's area averaged (default 4)"),
                        ("vignetting", "relative fall-off at the image corner"),
                        ("read-noise", "read-noise sigma (linear units)"),
-                       ("shot-noise", "shot-noise variance per unit signal")):
+                       ("shot-noise", "shot-noise variance per unit signal"),
+                       ("interreflection", "one diffuse bounce between surfaces, its strength (1 = physical; "
+                                           "not in --realistic)")):
         g.add_argument(f"--{name}", type=float, default=None, help=what)
     p.add_argument("--no-contact-sheet", action="store_true",
                    help="do not write contact_sheet.png (all views in one image)")
@@ -79,7 +81,8 @@ def capture_options(args) -> dict:
     """The capture options given on the command line (``fastneus.synth.capture.Capture`` fields)."""
     opts = {"response": args.response, "exposure": args.exposure, "speckle": args.speckle,
             "specular": args.specular, "shininess": args.shininess, "blur": args.defocus,
-            "supersample": args.supersample, "vignetting": args.vignetting, "read_noise": args.read_noise, "shot_noise": args.shot_noise}
+            "supersample": args.supersample, "vignetting": args.vignetting, "read_noise": args.read_noise, "shot_noise": args.shot_noise,
+            "interreflection": args.interreflection}
     return {k: v for k, v in opts.items() if v is not None}
 
 

@@ -19,6 +19,13 @@ meets the camera:
 7. saturation: clipped at 1 after the gain, so bright laser lines saturate;
 8. the camera response ``response`` (linear | srgb | gamma=G), then 8-bit quantisation.
 
+Before all of them, ``interreflection`` > 0 adds one diffuse bounce between surfaces (light that
+leaves one part of the object, the ambient's and the projectors', and lights another: a cup's
+inside, a nut's hole, a leg beside a body), Monte Carlo at the pixel centres, times that strength
+(1 = the physical single bounce of a Lambertian surface). It is not in the ``--realistic`` mix
+(its numbers stay comparable); ask for it with ``--interreflection S`` or
+``realistic:interreflection=S`` in scripts/quality.py.
+
 Ground truth (i_r, i_b, clean images, depth) stays in linear units, free of these effects; the
 true gains are written to ``scene.json``'s ``meta.capture.gains``, the response to ``response``.
 """
@@ -51,6 +58,7 @@ class Capture:
         vignetting: relative fall-off at the image corner; 0 = none.
         read_noise: read-noise sigma (linear units).
         shot_noise: shot-noise variance per unit of linear signal.
+        interreflection: strength of one diffuse bounce between surfaces (1 = physical); 0 = none.
     """
 
     response: str = "linear"
@@ -63,6 +71,7 @@ class Capture:
     vignetting: float = 0.0
     read_noise: float = 0.0
     shot_noise: float = 0.0
+    interreflection: float = 0.0
 
     def to_meta(self, gains: list[float]) -> dict:
         """The settings and the true per-frame gains, for ``scene.json``'s ``meta.capture``."""
@@ -74,7 +83,8 @@ SUPERSAMPLE = 4  # rays per pixel side of a blurred capture (the laser lines are
 REALISTIC = dict(response="srgb", exposure=0.25, speckle=0.3, specular=0.25, shininess=40.0, blur=0.7,
                  vignetting=0.25, read_noise=0.002, shot_noise=2e-4)
 _LIMITS = {"exposure": (0.0, 4.0), "speckle": (0.0, 1.0), "specular": (0.0, 10.0), "shininess": (1.0, 1e4),
-           "blur": (0.0, 5.0), "supersample": (1, 8), "vignetting": (0.0, 0.95), "read_noise": (0.0, 0.5), "shot_noise": (0.0, 0.5)}
+           "blur": (0.0, 5.0), "supersample": (1, 8), "vignetting": (0.0, 0.95), "read_noise": (0.0, 0.5), "shot_noise": (0.0, 0.5),
+           "interreflection": (0.0, 4.0)}
 
 
 def make_capture(capture: dict | Capture | None = None, realistic: bool = False) -> Capture | None:

@@ -40,6 +40,7 @@ RIG_BASELINES = (-0.6, -0.2, 0.2, 0.6)  # metres, horizontal, in camera coordina
 SEQUENCE_BASELINES = (0.6,)  # a sequence is shown by one projector
 GENERATOR = "fastneus synth"
 _OUR_DIRS = ("images", "masks", "depth", "normals", "clean", "patterns")
+BOUNCE_RAYS = 32  # rays per camera pixel for capture.interreflection (Monte Carlo; the bounce is smooth)
 
 
 # --------------------------------------------------------------------------- geometry
@@ -252,6 +253,8 @@ def _synthesize(out, shape, mesh, views, size, pattern, illum, albedo, noise, se
     if medium not in ("air", "water"):
         raise FastneusError(f"unknown medium {medium!r}; use air or water", field="--medium")
     wet = medium == "water"
+    if wet and cap is not None and cap.interreflection > 0:
+        raise FastneusError("inter-reflection under water is not modelled", field="capture.interreflection")
     if wet and laser_planes:
         raise FastneusError("laser planes under water are not modelled (their sheets bend at the port)",
                             field="--medium")
@@ -359,23 +362,13 @@ def _synthesize(out, shape, mesh, views, size, pattern, illum, albedo, noise, se
         parent = (is_.reshape(-1) // sub) * W + js.reshape(-1) // sub
     eps = 2e-4 * obj_radius  # shadow-ray offset (float32 safe at metre scale)
 
-    def trace(c2w, uv_px):
-        """Cast camera rays through ``uv_px`` [N, 2] (continuous pixel coordinates) of the view
-        ``c2w`` and light their hits: what the photo of every shot is made of."""
-        o, d = pixel_rays(K, c2w, uv_px)  # world space (S = identity)
-        if wet:  # refract at the camera's port: rays start on its outer face, in the water
-            R = torch.tensor(c2w[:3, :3], dtype=torch.float32, device=dev)
-            b, w = refract_rays(d @ R, port_row_t)
-            o, d = o + b @ R.T, w @ R.T
-        t, face, n = raycast_mesh(V, F, o, d, 1e6)
-        hit = face >= 0
-        hidx = hit.nonzero().squeeze(1)
-        dh, th, nh = d[hidx], t[hidx], n[hidx]
-        P = o[hidx] + th[:, None] * dh
-        zc = torch.tensor(c2w[:3, 2], dtype=torch.float32, device=dev)
-        depth = torch.zeros(uv_px.shape[0], dtype=torch.float32, device=dev)
-        depth[hidx] = (P - torch.tensor(c2w[:3, 3], dtype=torch.float32, device=dev)) @ zc  # z-depth
-        D = amb * alb(P, face[hidx], V, F) * (0.3 + 0.7 * (nh @ light).clamp_min(0))[:, None]
+    def light_at(c2w, P, fh, nh):
+        """The direct light at surface points ``P`` [N, 3] (faces ``fh`` [N], unit normals ``nh``)
+        with the projectors of the view ``c2w``: albedo [N, 3], D [N, 3] (ambient-lit colour),
+        Q[shot][projector] [N, 3] pattern samples, vis[projector] [N] shadow tests, to_proj
+        [projector] [N, 3] unit directions toward each projector."""
+        a = alb(P, fh, V, F)
+        D = amb * a * (0.3 + 0.7 * (nh @ light).clamp_min(0))[:, None]
 
         # projector terms: Q per shot and projector, V per projector (shadow rays where lit)
         Q = [[None] * len(pids) for _ in range(n_shots)]
@@ -418,8 +411,65 @@ def _synthesize(out, shape, mesh, views, size, pattern, illum, albedo, noise, se
                 ts, _, _ = raycast_mesh(V, F, so, dirp[sel], (dist[sel] - 2 * eps).clamp_min(0))
                 Vk[sel] = (~torch.isfinite(ts)).to(torch.float32)
             vis.append(Vk)
+        return a, D, Q, vis, to_proj
 
-        return dict(hit=hit, hidx=hidx, dh=dh, th=th, nh=nh, depth=depth, D=D, Q=Q, vis=vis, to_proj=to_proj)
+    def trace(c2w, uv_px):
+        """Cast camera rays through ``uv_px`` [N, 2] (continuous pixel coordinates) of the view
+        ``c2w`` and light their hits: what the photo of every shot is made of."""
+        o, d = pixel_rays(K, c2w, uv_px)  # world space (S = identity)
+        if wet:  # refract at the camera's port: rays start on its outer face, in the water
+            R = torch.tensor(c2w[:3, :3], dtype=torch.float32, device=dev)
+            b, w = refract_rays(d @ R, port_row_t)
+            o, d = o + b @ R.T, w @ R.T
+        t, face, n = raycast_mesh(V, F, o, d, 1e6)
+        hit = face >= 0
+        hidx = hit.nonzero().squeeze(1)
+        dh, th, nh = d[hidx], t[hidx], n[hidx]
+        P = o[hidx] + th[:, None] * dh
+        zc = torch.tensor(c2w[:3, 2], dtype=torch.float32, device=dev)
+        depth = torch.zeros(uv_px.shape[0], dtype=torch.float32, device=dev)
+        depth[hidx] = (P - torch.tensor(c2w[:3, 3], dtype=torch.float32, device=dev)) @ zc  # z-depth
+        a, D, Q, vis, to_proj = light_at(c2w, P, face[hidx], nh)
+        return dict(hit=hit, hidx=hidx, dh=dh, th=th, nh=nh, P=P, depth=depth, albedo=a, D=D, Q=Q, vis=vis,
+                    to_proj=to_proj)
+
+    def bounce(c2w, P, nh, v):
+        """One diffuse bounce of the view ``c2w``'s light onto the points ``P`` [N, 3] (normals ``nh``).
+
+        ``BOUNCE_RAYS`` cosine-weighted rays per point find the surfaces it sees; each hit's
+        outgoing light is what the camera would see of it (D plus every projector's diffuse light,
+        shadows included; no speckle or highlights). Returns (ambient [N, 3], per shot [N, 3]): the
+        mean light arriving along those rays (misses bring none), times albedo = the bounce's
+        outgoing light (a Lambertian surface's one-bounce radiance, Monte Carlo).
+        """
+        n_pts = P.shape[0]
+        zero = torch.zeros(n_pts, 3, dtype=torch.float32, device=dev)
+        if n_pts == 0:
+            return zero, [zero.clone() for _ in shots]
+        gen = torch.Generator(device=dev).manual_seed(int(seed) * 1000003 + 17 * v + 5)
+        u = torch.rand(n_pts, BOUNCE_RAYS, 2, device=dev, generator=gen)
+        r, phi = u[..., 0].sqrt(), 2 * math.pi * u[..., 1]
+        local = torch.stack([r * phi.cos(), r * phi.sin(), (1 - u[..., 0]).clamp_min(0).sqrt()], -1)
+        helper = torch.where(nh[:, :1].abs() < 0.9, torch.tensor([1.0, 0, 0], device=dev),
+                             torch.tensor([0, 1.0, 0], device=dev))
+        t1 = torch.nn.functional.normalize(torch.cross(nh, helper, dim=1), dim=1)
+        t2 = torch.cross(nh, t1, dim=1)
+        dirs = (local[..., :1] * t1[:, None] + local[..., 1:2] * t2[:, None] + local[..., 2:] * nh[:, None]).reshape(-1, 3)
+        org = (P + eps * nh).repeat_interleave(BOUNCE_RAYS, 0)
+        tb, fb, nb = raycast_mesh(V, F, org.contiguous(), dirs.contiguous(), 1e6)
+        ok = (fb >= 0) & ((nb * dirs).sum(1) < 0)  # a surface facing the point (not a mesh's inside)
+        idx = ok.nonzero().squeeze(1)
+        owner = idx // BOUNCE_RAYS
+        Py = org[idx] + tb[idx, None] * dirs[idx]
+        _, Dy, Qy, visy, _ = light_at(c2w, Py, fb[idx], nb[idx])
+        amb_in = zero.index_add(0, owner, Dy) / BOUNCE_RAYS
+        per_shot = []
+        for j in range(len(shots)):
+            Ly = torch.zeros_like(Dy)
+            for k in range(len(pids)):
+                Ly = Ly + (i_r * Dy + i_b) * Qy[j][k] * visy[k][:, None]
+            per_shot.append(zero.index_add(0, owner, Ly) / BOUNCE_RAYS)
+        return amb_in, per_shot
 
     frames: list[Frame] = []
     sheet_rows = []
@@ -442,12 +492,26 @@ def _synthesize(out, shape, mesh, views, size, pattern, illum, albedo, noise, se
             # sub x sub rays per pixel (the lens blur on that grid, then the box average)
             gs = trace(c2w, uv_sub) if sub > 1 else g
             nv = hidx.numel()
+            bounce_on = cap is not None and cap.interreflection > 0
+            if bounce_on:  # light arriving from other surfaces at the pixel centres' hits (smooth:
+                # the sub-pixel rays of a pixel share it, each times its own albedo)
+                b_amb, b_shot = bounce(c2w, g["P"], nh, v)
+                rows = parent[gs["hidx"]] if sub > 1 else gs["hidx"]
+                arrive = torch.zeros(H * W, 3, dtype=torch.float32, device=dev)
+                arrive[hidx] = b_amb
+                ind_amb = cap.interreflection * gs["albedo"] * arrive[rows]
+                ind_shot = []
+                for b in b_shot:
+                    arrive = torch.zeros(H * W, 3, dtype=torch.float32, device=dev)
+                    arrive[hidx] = b
+                    ind_shot.append(cap.interreflection * gs["albedo"] * arrive[rows])
             mask = hit.view(H, W)
             water = Water(th, hidx, H * W, dev) if wet else None
             clean = torch.zeros(H * W, 3, dtype=torch.uint8, device=dev)
             if wet:
                 clean[:] = _quantise(water.background())
-            clean[hidx] = _quantise((water.seen(D) if wet else D) + _noise((nv, 3), noise, (seed, 1, v), dev))
+            D_off = D + cap.interreflection * g["albedo"] * b_amb if bounce_on else D  # the projectors off
+            clean[hidx] = _quantise((water.seen(D_off) if wet else D_off) + _noise((nv, 3), noise, (seed, 1, v), dev))
             normal_img = torch.zeros(H * W, 3, dtype=torch.uint8, device=dev)
             normal_img[hidx] = torch.round((nh + 1) * 0.5 * 255).clamp(0, 255).to(torch.uint8)
             vname = f"{v:03d}"
@@ -480,6 +544,8 @@ def _synthesize(out, shape, mesh, views, size, pattern, illum, albedo, noise, se
                     # speckle: one grain value per camera pixel (its sub-pixel rays share it)
                     c = Ds + apply_speckle(lp, cap.speckle, (seed, 7, fi), None if sub == 1 else
                                            (parent[hs], H * W)) + (lobe_amb if cap.specular > 0 else 0.0)
+                    if bounce_on:  # the surfaces' light reflected once more (ambient and this shot's)
+                        c = c + ind_amb + ind_shot[j]
                     lin = torch.zeros(ns, 3, dtype=torch.float32, device=dev)
                     if wet:
                         ws = Water(gs["th"], hs, ns, dev) if sub > 1 else water
