@@ -438,9 +438,10 @@ def _synthesize(out, shape, mesh, views, size, pattern, illum, albedo, noise, se
 
         ``BOUNCE_RAYS`` cosine-weighted rays per point find the surfaces it sees; each hit's
         outgoing light is what the camera would see of it (D plus every projector's diffuse light,
-        shadows included; no speckle or highlights). Returns (ambient [N, 3], per shot [N, 3]): the
-        mean light arriving along those rays (misses bring none), times albedo = the bounce's
-        outgoing light (a Lambertian surface's one-bounce radiance, Monte Carlo).
+        shadows included; no speckle or highlights). Returns (ambient [N, 3], [per shot [N, 3]]):
+        the mean light arriving along those rays (misses bring none), the ambient's and each shot's
+        projectors'. Times a point's albedo it is the light the point sends on (a Lambertian
+        surface's one-bounce radiance, Monte Carlo); the caller scales it by the capture's strength.
         """
         n_pts = P.shape[0]
         zero = torch.zeros(n_pts, 3, dtype=torch.float32, device=dev)
