@@ -151,6 +151,17 @@ def default_preset(device: str) -> str:
     return "fewview" if device.startswith("cuda") else "cpu-quick"
 
 
+def parse_counts(text: str, flag: str) -> list[int]:
+    """``"1,2"`` -> ``[1, 2]``: comma-separated positive integers, else one line naming ``flag``."""
+    try:
+        vals = [int(v) for v in str(text).split(",") if v.strip()]
+    except ValueError:
+        vals = []
+    if not vals or min(vals) < 1:
+        raise SystemExit(f"{flag}: expected comma-separated positive integers, got {text!r}")
+    return vals
+
+
 def parse_sets(items: list[str] | None) -> dict[str, str]:
     """``["k=v", ...]`` -> ``{"k": "v"}`` (values stay strings)."""
     out = {}

@@ -28,18 +28,7 @@ import fastneus  # noqa: F401 - before torch: it sets torch's OpenMP spin (GOMP_
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from benchutil import command_line, md_table, provenance_line, time_fn, write_results  # noqa: E402
-
-
-def parse_sizes(text: str) -> list[int]:
-    """``"512,2048"`` -> ``[512, 2048]``; one clear line for anything else."""
-    try:
-        sizes = [int(s) for s in text.split(",") if s.strip()]
-    except ValueError:
-        raise SystemExit(f"--sizes: expected comma-separated point counts, got {text!r}") from None
-    if not sizes or min(sizes) < 1:
-        raise SystemExit(f"--sizes: expected positive point counts, got {text!r}")
-    return sizes
+from benchutil import command_line, md_table, parse_counts, provenance_line, time_fn, write_results  # noqa: E402
 
 
 def measure(threads: int, sizes: list[int], repeat: int) -> dict:
@@ -95,7 +84,7 @@ def main(argv: list[str] | None = None) -> dict:
         raise SystemExit(f"--threads: a split needs at least 2 threads, got {args.threads}")
     if args.repeat < 1:
         raise SystemExit(f"--repeat: expected a positive count, got {args.repeat}")
-    sizes = parse_sizes(args.sizes)
+    sizes = parse_counts(args.sizes, "--sizes")
     res = measure(args.threads, sizes, args.repeat)
     command = command_line("split_overhead.py", argv)
     text = report(res, command)

@@ -22,7 +22,7 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from benchutil import command_line, md_table, median, provenance_line, write_results  # noqa: E402
+from benchutil import command_line, md_table, median, parse_counts, provenance_line, write_results  # noqa: E402
 
 KEYS = ("steps", "train_seconds", "chamfer_sym_mm", "fscore")
 
@@ -68,12 +68,7 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--runs", default="/tmp/threads-bench-runs")
     ap.add_argument("overrides", nargs="*", help="key=value for every run")
     args = ap.parse_intermixed_args(argv)
-    try:
-        counts = [int(t) for t in args.threads.split(",") if t.strip()]
-    except ValueError:
-        counts = []
-    if not counts or min(counts) < 1:
-        raise SystemExit("--threads: positive integers, comma-separated")
+    counts = parse_counts(args.threads, "--threads")
     rows = []
     for r in range(args.pairs):
         for t in counts:
