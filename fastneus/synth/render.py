@@ -498,14 +498,13 @@ def _synthesize(out, shape, mesh, views, size, pattern, illum, albedo, noise, se
                 # the sub-pixel rays of a pixel share it, each times its own albedo)
                 b_amb, b_shot = bounce(c2w, g["P"], nh, v)
                 rows = parent[gs["hidx"]] if sub > 1 else gs["hidx"]
-                arrive = torch.zeros(H * W, 3, dtype=torch.float32, device=dev)
-                arrive[hidx] = b_amb
-                ind_amb = cap.interreflection * gs["albedo"] * arrive[rows]
-                ind_shot = []
-                for b in b_shot:
+
+                def sent_on(b):  # [hits of g, 3] arriving light -> light leaving gs's hits
                     arrive = torch.zeros(H * W, 3, dtype=torch.float32, device=dev)
                     arrive[hidx] = b
-                    ind_shot.append(cap.interreflection * gs["albedo"] * arrive[rows])
+                    return cap.interreflection * gs["albedo"] * arrive[rows]
+
+                ind_amb, ind_shot = sent_on(b_amb), [sent_on(b) for b in b_shot]
             mask = hit.view(H, W)
             water = Water(th, hidx, H * W, dev) if wet else None
             clean = torch.zeros(H * W, 3, dtype=torch.uint8, device=dev)
