@@ -207,6 +207,12 @@ class LossSection:
     masks: str = knob("auto", "mask BCE: auto (on when every training frame has a mask) | on | off",
                       choices=("auto", "on", "off"))
     mask_weight: float = knob(0.1, "mask BCE weight (0 = off)", lo=0.0)
+    mask_weight_start: float = knob(0.0, "mask BCE weight at the start of the run, falling linearly to mask_weight "
+                                    "at mask_start_frac (thin parts the blurred photos barely show are held by "
+                                    "the masks while the shape forms, the photos have the last word); 0 = "
+                                    "mask_weight throughout", lo=0.0)
+    mask_start_frac: float = knob(0.3, "where mask_weight_start has fallen to mask_weight (fraction of the run)",
+                                  **FRAC)
     curvature_weight: float = knob(0.0, "smoothness prior |f(x+e) + f(x-e) - 2 f(x)| (oneshot; 0 = off)", lo=0.0)
     cos_anneal_frac: float = knob(0.15, "NeuS cos-anneal ratio 0 -> 1 over this fraction of the run", **FRAC)
     bg_prior: str = knob("auto", "background pixels are free space without masks: auto (>= 5 % of pixels) | on | off",

@@ -33,7 +33,7 @@ def test_fractions_validated_and_legacy_steps_converted(tmp_path, capsys):
 def test_presets_have_no_step_schedules(preset):
     cfg = load_config(preset)
     for k in ("occ_warmup_frac", "c2f_frac", "warmup_frac", "color_warmup_frac", "cos_anneal_frac",
-              "illum_warmup_frac", "inv_s_floor_frac", "bg_start_frac"):
+              "illum_warmup_frac", "inv_s_floor_frac", "bg_start_frac", "mask_start_frac"):
         assert 0.0 <= cfg.flat()[k] <= 1.0, k
 
 

@@ -149,11 +149,12 @@ def test_device_schedule_gives_the_same_field_and_table_gradients(small_scene, t
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="CUDA graphs need a CUDA device")
-@pytest.mark.parametrize("extra", [[], ["hull=bound"]])
+@pytest.mark.parametrize("extra", [[], ["hull=bound"], ["mask_weight_start=0.8", "mask_start_frac=0.3"]])
 def test_cuda_replayed_graph_matches_the_eager_step(tmp_path, extra):
     """Graph steps (first: eager on the side stream + capture; then replays) against eager
     steps on the same inputs: the same loss and parameters after every step. The scene is
-    rendered on the GPU (no small_scene: a GPU machine may have no CPU compiler for Warp)."""
+    rendered on the GPU (no small_scene: a GPU machine may have no CPU compiler for Warp).
+    With a falling mask weight the replayed graph reads each step's weight from the device."""
     from fastneus.train.graphstep import StepGraphs
 
     a, b = _pair(scene_on(None, tmp_path, "cuda"), tmp_path, "cuda", extra)
@@ -171,6 +172,7 @@ def test_cuda_replayed_graph_matches_the_eager_step(tmp_path, extra):
         torch.testing.assert_close(ra["loss"], rb["loss"], rtol=1e-4, atol=1e-6)
         _close(a, b, f"step {i}")
         assert p == 0.5 or (float(a.cos_dev) == pytest.approx(a.cos_anneal(p)) and a.cos_anneal(p) < 1.0)
+        assert float(a.mask_w_dev) == pytest.approx(a.mask_weight_at(p))
         assert (a.field.active_levels < a.field.hashgrid.levels) == (p < 0.1)
         assert int(a.field._levels_t[0]) == a.field.active_levels
     assert graphs.captured >= 1 and graphs.replayed >= 4, graphs.summary()
@@ -241,11 +243,9 @@ def test_a_key_is_captured_only_when_the_next_step_repeats_it():
 
     class _T:
         cfg = load_config("cpu-quick")
-        cos_dev = torch.ones(1)
-
         @staticmethod
-        def cos_anneal(p):
-            return 1.0
+        def fill_step_scalars(p):
+            pass
 
         @staticmethod
         def photo_priors(p):

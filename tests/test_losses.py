@@ -90,3 +90,17 @@ def test_schedules_ramp_in_and_fade_out():
     assert losses.prior_fade(0.0, 3.0, 2.0) == 3.0
     assert losses.prior_fade(0.5, 3.0, 2.0) == pytest.approx(2.25)
     assert losses.prior_fade(2.0, 3.0, 2.0) == 0.0
+
+
+def test_mask_weight_falls_from_its_start_to_the_weight_over_a_fraction_of_the_run():
+    """``loss.mask_weight_start`` holds thin parts while the shape forms: linear to
+    ``mask_weight`` at ``mask_start_frac``, then constant; 0 leaves the weight constant."""
+    from fastneus.config import load_config
+    from fastneus.train.trainer import Trainer
+
+    tr = object.__new__(Trainer)  # mask_weight_at reads the config only
+    tr.cfg = load_config("fewview", ["mask_weight=0.1", "mask_weight_start=0.5", "mask_start_frac=0.4"])
+    seen = [tr.mask_weight_at(p) for p in (0.0, 0.1, 0.2, 0.4, 0.7, 1.0)]
+    assert seen == pytest.approx([0.5, 0.4, 0.3, 0.1, 0.1, 0.1])
+    tr.cfg = load_config("fewview", ["mask_weight=0.1", "mask_weight_start=0"])
+    assert {tr.mask_weight_at(p) for p in (0.0, 0.2, 1.0)} == {0.1}

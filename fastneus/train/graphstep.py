@@ -12,7 +12,8 @@ and replayed as one graph launch, given that
   means (padded samples belong to no ray, so compositing never sees them);
 - the values that change from step to step are on the device: the learning rates and bias
   corrections (``Adam.prepare_device_step``), the sharpness floor and the number of active hash
-  levels (``SDFField.enable_device_schedule``), the NeuS cos-anneal ratio (``Trainer.cos_dev``);
+  levels (``SDFField.enable_device_schedule``), the NeuS cos-anneal ratio (``Trainer.cos_dev``), the
+  mask loss's weight (``Trainer.mask_w_dev``, ``loss.mask_weight_start``);
 - nothing else changes: steps in the background prior's ramp-in,
   with the fading surface prior, pose / blur / water corrections, or a step count that differs
   inside a parameter group run eagerly (:meth:`StepGraphs.eligible`).
@@ -115,6 +116,7 @@ class StepGraphs:
         self.captures: list[dict] = []  # each capture's step, key sizes and host seconds (run.json)
         trainer.field.enable_device_schedule()
         trainer.cos_dev = torch.ones((1,), device=self.device)  # the NeuS cos-anneal ratio, filled per step
+        trainer.mask_w_dev = torch.ones((), device=self.device)  # the mask loss's weight, filled per step
 
     def eligible(self, tr, p: float) -> bool:
         """Whether this step's compute part is the same graph as any other step's with its key."""
@@ -152,7 +154,7 @@ class StepGraphs:
 
     def step(self, tr, batch: dict, xr: torch.Tensor, smp: dict, p: float) -> dict | None:
         """Run this step's compute part: replay its graph, or run it eagerly and capture it."""
-        tr.cos_dev.fill_(tr.cos_anneal(p))  # read at replay (a fill: no host sync)
+        tr.fill_step_scalars(p)  # read at replay (fills: no host sync)
         capacity = self._capacity(tr, batch, smp["n_samples"], p)
         key = self._key(tr, batch, capacity, p)
         e = self.cache.get(key)

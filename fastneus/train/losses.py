@@ -99,11 +99,12 @@ def eikonal(grads: torch.Tensor, weight: float, valid: torch.Tensor | None = Non
     return {"eikonal": weight * r, "eik": r.detach()}
 
 
-def mask_bce(opacity: torch.Tensor, mask: torch.Tensor, weight: float) -> dict[str, torch.Tensor]:
+def mask_bce(opacity: torch.Tensor, mask: torch.Tensor, weight: float | torch.Tensor) -> dict[str, torch.Tensor]:
     """Binary cross-entropy of the rendered opacity against the object mask.
 
     Args:
-        opacity: [B] accumulated opacity; mask: [B] in {0, 1}; weight: ``loss.mask_weight``.
+        opacity: [B] accumulated opacity; mask: [B] in {0, 1}; weight: the scheduled mask weight
+            (``Trainer.mask_weight_at``; a 0-d device tensor inside a captured step).
     """
     op = opacity.clamp(1e-3, 1 - 1e-3)
     return {"mask": weight * torch.nn.functional.binary_cross_entropy(op, mask)}

@@ -271,6 +271,7 @@ class Trainer:
         # CUDA: the step after marching replayed as a captured graph (fastneus.train.graphstep)
         self.graphs = None
         self.cos_dev: torch.Tensor | None = None  # [1] cos-anneal ratio on the device (with graphs)
+        self.mask_w_dev: torch.Tensor | None = None  # [] the mask loss's weight on the device (with graphs)
         if self.device.type == "cuda" and cfg.run.cuda_graph != "off":
             from fastneus.train.graphstep import StepGraphs
 
@@ -361,6 +362,19 @@ class Trainer:
     def cos_anneal(self, p: float | None = None) -> float:
         p = self.progress() if p is None else p
         return 1.0 if self.cfg.loss.cos_anneal_frac <= 0 else min(1.0, p / self.cfg.loss.cos_anneal_frac)
+
+    def fill_step_scalars(self, p: float) -> None:
+        """Write progress ``p``'s schedule values into the device scalars a captured step reads."""
+        self.cos_dev.fill_(self.cos_anneal(p))
+        self.mask_w_dev.fill_(self.mask_weight_at(p))
+
+    def mask_weight_at(self, p: float) -> float:
+        """The mask loss's weight at progress ``p``: ``mask_weight_start`` falling linearly to
+        ``mask_weight`` at ``mask_start_frac`` (``mask_weight`` throughout when the start is 0)."""
+        c = self.cfg.loss
+        if c.mask_weight_start <= 0 or p >= c.mask_start_frac:
+            return c.mask_weight
+        return c.mask_weight_start + (c.mask_weight - c.mask_weight_start) * (p / c.mask_start_frac)
 
     def _masks_hull(self) -> str:
         """``occupancy.hull``: with masks, the space outside their visual hull (:func:`fastneus.train.
@@ -656,8 +670,8 @@ class Trainer:
         bg_on = bg_on and "bg" in batch
         # a graph being recorded reads the ratio from the device buffer StepGraphs.step fills before
         # every replay; an eager step passes the value itself
-        cos = (self.cos_dev if self.cos_dev is not None and torch.cuda.is_current_stream_capturing()
-               else self.cos_anneal(p))
+        capturing = self.cos_dev is not None and torch.cuda.is_current_stream_capturing()
+        cos = self.cos_dev if capturing else self.cos_anneal(p)
         out = shade_samples(self.field, smp, self.rig.projection(), batch["origins"], batch["dirs"], batch["fidx"], c,
                             i_r=i_r, i_b=i_b, cos_anneal=cos, curvature=c.loss.curvature_weight > 0,
                             extra_points=xr, lit=bg_on and self.bg_lit)
@@ -678,7 +692,7 @@ class Trainer:
         # eikonal on the samples plus the uniform points (evaluated with them in shade_samples)
         terms |= losses.eikonal(out["grad_all"], c.loss.eikonal_weight, valid=valid)
         if self.masks_used and "mask" in batch:
-            terms |= losses.mask_bce(opacity, batch["mask"], c.loss.mask_weight)
+            terms |= losses.mask_bce(opacity, batch["mask"], self.mask_w_dev if capturing else self.mask_weight_at(p))
         elif bg_on:
             ramp = losses.background_ramp(p, c.loss.bg_start_frac)
             is_bg = batch["bg"]
