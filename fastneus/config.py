@@ -207,10 +207,13 @@ class LossSection:
     masks: str = knob("auto", "mask BCE: auto (on when every training frame has a mask) | on | off",
                       choices=("auto", "on", "off"))
     mask_weight: float = knob(0.1, "mask BCE weight (0 = off)", lo=0.0)
-    mask_weight_start: float = knob(0.0, "mask BCE weight at the start of the run, falling linearly to mask_weight "
-                                    "at mask_start_frac (thin parts the blurred photos barely show are held by "
-                                    "the masks while the shape forms, the photos have the last word); 0 = "
-                                    "mask_weight throughout", lo=0.0)
+    mask_start: str = knob("auto", "a stronger mask weight early in the run (mask_weight_start, falling to "
+                           "mask_weight at mask_start_frac): thin parts a blurred photo barely shows are held by the "
+                           "masks while the shape forms, the photos have the last word. auto: with masks in a lit "
+                           "room (the object's pixels bright, not lasers in the dark, where it lost legs) | on | off",
+                           choices=("auto", "on", "off"))
+    mask_weight_start: float = knob(0.3, "mask BCE weight at the start of the run (mask_start; used when above "
+                                    "mask_weight)", lo=0.0)
     mask_start_frac: float = knob(0.3, "where mask_weight_start has fallen to mask_weight (fraction of the run)",
                                   **FRAC)
     curvature_weight: float = knob(0.0, "smoothness prior |f(x+e) + f(x-e) - 2 f(x)| (oneshot; 0 = off)", lo=0.0)

@@ -149,7 +149,7 @@ def test_device_schedule_gives_the_same_field_and_table_gradients(small_scene, t
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="CUDA graphs need a CUDA device")
-@pytest.mark.parametrize("extra", [[], ["hull=bound"], ["mask_weight_start=0.8", "mask_start_frac=0.3"]])
+@pytest.mark.parametrize("extra", [[], ["hull=bound"], ["mask_start=on", "mask_weight_start=0.8", "mask_start_frac=0.3"]])
 def test_cuda_replayed_graph_matches_the_eager_step(tmp_path, extra):
     """Graph steps (first: eager on the side stream + capture; then replays) against eager
     steps on the same inputs: the same loss and parameters after every step. The scene is

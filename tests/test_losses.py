@@ -94,13 +94,45 @@ def test_schedules_ramp_in_and_fade_out():
 
 def test_mask_weight_falls_from_its_start_to_the_weight_over_a_fraction_of_the_run():
     """``loss.mask_weight_start`` holds thin parts while the shape forms: linear to
-    ``mask_weight`` at ``mask_start_frac``, then constant; 0 leaves the weight constant."""
+    ``mask_weight`` at ``mask_start_frac``, then constant; off: the weight is constant."""
     from fastneus.config import load_config
     from fastneus.train.trainer import Trainer
 
-    tr = object.__new__(Trainer)  # mask_weight_at reads the config only
+    tr = object.__new__(Trainer)  # mask_weight_at reads the config and the decision only
     tr.cfg = load_config("fewview", ["mask_weight=0.1", "mask_weight_start=0.5", "mask_start_frac=0.4"])
+    tr.mask_start_used = True
     seen = [tr.mask_weight_at(p) for p in (0.0, 0.1, 0.2, 0.4, 0.7, 1.0)]
     assert seen == pytest.approx([0.5, 0.4, 0.3, 0.1, 0.1, 0.1])
-    tr.cfg = load_config("fewview", ["mask_weight=0.1", "mask_weight_start=0"])
+    tr.mask_start_used = False
     assert {tr.mask_weight_at(p) for p in (0.0, 0.2, 1.0)} == {0.1}
+
+
+@pytest.fixture(scope="module")
+def lit_and_dark(tmp_path_factory):
+    """A sphere in 3 views of 24 px with masks, in a lit room and in a dark one."""
+    from fastneus.synth.render import synthesize
+
+    out = {}
+    for lit in (True, False):
+        out[lit] = d = tmp_path_factory.mktemp("lit" if lit else "dark")
+        synthesize(d, shape="sphere", views=3, size=(24, 24), illum="normal" if lit else "dark", seed=0,
+                   device="cpu", contact_sheet=False, progress=False)
+    return out
+
+
+@pytest.mark.parametrize("lit, extra, used", [(True, [], True), (False, [], False), (False, ["mask_start=on"], True),
+                                              (True, ["mask_start=off"], False),
+                                              (True, ["mask_weight_start=0.1"], False)])
+def test_mask_start_is_chosen_in_a_lit_room_printed_and_saved(tmp_path, lit_and_dark, lit, extra, used):
+    """``mask_start=auto`` strengthens the masks early only where the object is lit (ambient light,
+    not lasers in a dark room, where it lost the realistic ant's legs), and says so in the run's
+    masks note (printed and written to run.json)."""
+    from fastneus.config import load_config
+    from fastneus.data import Scene
+    from fastneus.train.trainer import Trainer
+
+    cfg = load_config("cpu-quick", ["steps=4", "camera_blur=0", "mask_weight=0.1", "threads=1"] + extra)
+    tr = Trainer(Scene.load(lit_and_dark[lit]), cfg, tmp_path / "r", "cpu")
+    assert tr.masks_used and tr.mask_start_used is used
+    assert ("(mask_start)" in tr.masks_note) is used
+    assert tr.mask_weight_at(0.0) == pytest.approx(0.3 if used else 0.1)
