@@ -178,8 +178,8 @@ class Trainer:
         if self.stop_used:
             self.masks_note += (f"; {'dark room: ' if mode == 'auto' else ''}rays end {cfg.occupancy.stop_inside:g} "
                                 "grid cells inside the object (stop_rays)")
-        # a stronger mask weight early (loss.mask_start): realistic ant, Normal, 3 s on an H200: legs kept
-        # on 3 of 3 seeds (3.1-3.8 mm symmetric against 4.5-8.3); in a dark room it lost them on 2 of 3
+        # a stronger mask weight early (loss.mask_start): realistic ant, Normal, 3 s on an H200: better on
+        # 5 of 6 seeds (median 3.37 against 4.56 mm symmetric); in a dark room it lost the legs on 2 of 3
         # (docs/benchmarks/mask-weight.md)
         ms = cfg.loss.mask_start
         self.mask_start_used = (self.masks_used and cfg.loss.mask_weight_start > cfg.loss.mask_weight
