@@ -108,16 +108,14 @@ def test_mask_weight_falls_from_its_start_to_the_weight_over_a_fraction_of_the_r
 
 
 @pytest.fixture(scope="module")
-def lit_and_dark(tmp_path_factory):
-    """A sphere in 3 views of 24 px with masks, in a lit room and in a dark one."""
+def lit_and_dark(small_scene, tmp_path_factory):
+    """conftest's lit sphere (3 views of 24 px with masks) and the same in a dark room."""
     from fastneus.synth.render import synthesize
 
-    out = {}
-    for lit in (True, False):
-        out[lit] = d = tmp_path_factory.mktemp("lit" if lit else "dark")
-        synthesize(d, shape="sphere", views=3, size=(24, 24), illum="normal" if lit else "dark", seed=0,
-                   device="cpu", contact_sheet=False, progress=False)
-    return out
+    d = tmp_path_factory.mktemp("dark")
+    synthesize(d, shape="sphere", views=3, size=(24, 24), illum="dark", seed=0, device="cpu",
+               contact_sheet=False, progress=False)
+    return {True: small_scene, False: d}
 
 
 @pytest.mark.parametrize("lit, extra, used", [(True, [], True), (False, [], False), (False, ["mask_start=on"], True),

@@ -116,7 +116,8 @@ class StepGraphs:
         self.captures: list[dict] = []  # each capture's step, key sizes and host seconds (run.json)
         trainer.field.enable_device_schedule()
         trainer.cos_dev = torch.ones((1,), device=self.device)  # the NeuS cos-anneal ratio, filled per step
-        trainer.mask_w_dev = torch.ones((), device=self.device)  # the mask loss's weight, filled per step
+        # the mask loss's weight: filled per step while loss.mask_start changes it
+        trainer.mask_w_dev = torch.full((), trainer.mask_weight_at(0.0), device=self.device)
 
     def eligible(self, tr, p: float) -> bool:
         """Whether this step's compute part is the same graph as any other step's with its key."""

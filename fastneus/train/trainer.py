@@ -173,8 +173,11 @@ class Trainer:
             self.masks_note += f"; warning: empty (all-zero) mask {', '.join(self.bank.empty_masks)}"
         # rays end deep inside the object (occupancy.stop_rays): their samples past it carry no weight
         mode = cfg.occupancy.stop_rays
-        self.stop_used = mode == "on" or (mode == "auto" and self.masks_used and hasattr(self.bank, "dark_object")
-                                          and self.bank.dark_object())
+        # with masks: lasers in a dark room or an ambient-lit object (stop_rays and mask_start both ask;
+        # read once: it looks at every training pixel)
+        room_known = self.masks_used and hasattr(self.bank, "dark_object")
+        dark_object = room_known and self.bank.dark_object()
+        self.stop_used = mode == "on" or (mode == "auto" and dark_object)
         if self.stop_used:
             self.masks_note += (f"; {'dark room: ' if mode == 'auto' else ''}rays end {cfg.occupancy.stop_inside:g} "
                                 "grid cells inside the object (stop_rays)")
@@ -183,8 +186,7 @@ class Trainer:
         # (docs/benchmarks/mask-weight.md)
         ms = cfg.loss.mask_start
         self.mask_start_used = (self.masks_used and cfg.loss.mask_weight_start > cfg.loss.mask_weight
-                                and (ms == "on" or (ms == "auto" and hasattr(self.bank, "dark_object")
-                                                    and not self.bank.dark_object())))
+                                and (ms == "on" or (ms == "auto" and room_known and not dark_object)))
         if self.mask_start_used:
             self.masks_note += (f"; {'lit room: ' if ms == 'auto' else ''}mask weight {cfg.loss.mask_weight_start:g} "
                                 f"-> {cfg.loss.mask_weight:g} over the first {cfg.loss.mask_start_frac:.0%} (mask_start)")
@@ -376,7 +378,8 @@ class Trainer:
     def fill_step_scalars(self, p: float) -> None:
         """Write progress ``p``'s schedule values into the device scalars a captured step reads."""
         self.cos_dev.fill_(self.cos_anneal(p))
-        self.mask_w_dev.fill_(self.mask_weight_at(p))
+        if self.mask_start_used:  # else it holds mask_weight from its creation (no launch per step)
+            self.mask_w_dev.fill_(self.mask_weight_at(p))
 
     def mask_weight_at(self, p: float) -> float:
         """The mask loss's weight at progress ``p``: ``mask_weight_start`` falling linearly to
