@@ -3,13 +3,15 @@
     python scripts/quality.py [--device cuda|cpu] [--shapes bunny,rock,toy,bear] [--illums normal,dark]
                               [--captures ideal,realistic] [--masks on,off] [--budgets 5,10,20,60] [--size 200] [--views 20]
                               [--out DIR] [--tag NAME] [--report-from A.jsonl,B.jsonl] [--no-md]
-                              [--variants "name:k=v k=v;name2:k=v"] [key=value ...]
+                              [--variants "name:k=v k=v;name2:k=v"] [--seeds 0,1,2] [key=value ...]
 
 Every cell is ``fastneus train SCENE time_budget=B`` with the device's default preset
 (fewview on GPU, cpu-quick on CPU) and nothing else, except ``masks=off`` in the no-mask
 column (the scene's masks are hidden from the run, as for a capture without masks). Extra
 ``key=value`` arguments apply to every cell, and ``--variants`` runs every cell once per named
-set of overrides (both for tuning sweeps; the published matrix uses neither). Scenes: the paper's rig (4 cross-laser projectors at +-0.2 / +-0.6 m), ``--views``
+set of overrides (both for tuning sweeps; the published matrix uses neither); ``--seeds`` runs every
+cell once per training seed (``seed=S``; the scene stays the same) and the tables and checks use the
+mean over the seeds (the full table lists each run). Scenes: the paper's rig (4 cross-laser projectors at +-0.2 / +-0.6 m), ``--views``
 views of ``--size`` px, object ~2 m across at 4 m; shapes:
 
 - ``bunny``: the Stanford bunny (a real range scan), ``bear``: warp-lang's bear asset
@@ -34,6 +36,7 @@ docs/benchmarks/quality-matrix.md.
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
 import time
 from pathlib import Path
@@ -76,6 +79,19 @@ def parse_capture(capture: str) -> dict | None:
     except FastneusError as e:
         raise SystemExit(f"--captures: {capture!r}: {e}") from None
     return {k: getattr(cap, k) for k in opts}
+
+
+def parse_seeds(text: str | None) -> list[int | None]:
+    """``--seeds`` as a list of ints; [None] (the config's seed, no override) when not given."""
+    if not text:
+        return [None]
+    try:
+        seeds = [int(x) for x in text.split(",") if x.strip()]
+    except ValueError:
+        raise SystemExit(f"--seeds: expected integers separated by commas, got {text!r}") from None
+    if not seeds or len(set(seeds)) != len(seeds):
+        raise SystemExit(f"--seeds: expected distinct integers, got {text!r}")
+    return seeds
 
 
 def scene_dir(cache: Path, shape: str, illum: str, views: int, size: int, capture: str = "ideal") -> Path:
@@ -138,17 +154,56 @@ def run_cell_isolated(scene, device: str, budget: float, masks: str, extra: list
     return json.loads(rows[-1])
 
 
+def row_seed(row: dict) -> int | None:
+    """The training seed of a row: its ``seed``, else a ``seed=S`` among its overrides (rows written
+    before ``--seeds``), else None (the config's)."""
+    if row.get("seed") is not None:
+        return int(row["seed"])
+    for ov in row.get("overrides") or []:
+        key, _, val = str(ov).partition("=")
+        if key.strip() == "seed" and val.strip().lstrip("-").isdigit():
+            return int(val)
+    return None
+
+
+CELL_KEY = ("variant", "shape", "illum", "capture", "masks", "budget")  # a cell, whatever its seed
+
+
+def mean_over_seeds(rows: list[dict]) -> list[dict]:
+    """One row per cell (:data:`CELL_KEY`): each metric and ``steps`` averaged over the cell's seeds
+    (None where no seed has it; a failed run's inf stays inf), ``seeds`` = how many runs."""
+    groups: dict[tuple, list[dict]] = {}
+    for r in rows:
+        groups.setdefault(tuple(r[k] for k in CELL_KEY), []).append(r)
+    out = []
+    for key, rs in groups.items():
+        m = dict(zip(CELL_KEY, key), seeds=len(rs))
+        for k in METRICS + ["steps"]:
+            vals = [r[k] for r in rs if r.get(k) is not None]
+            m[k] = sum(vals) / len(vals) if vals else None
+        out.append(m)
+    return out
+
+
 def summarise(rows: list[dict], budgets: list[float]) -> tuple[str, dict]:
-    """Markdown tables (one per metric group) and a dict of the target checks."""
+    """Markdown tables (one per metric group) and a dict of the target checks; with several seeds
+    per cell the grid and the checks use the mean over them, the full table lists every run."""
     for r in rows:
         r.setdefault("variant", "default")
         r.setdefault("capture", "ideal")
-    rows = sorted(rows, key=lambda r: (r["variant"], r["shape"], r["illum"], r["capture"], r["masks"], r["budget"]))
+        r.setdefault("seed", row_seed(r))
+
+    def order(r: dict) -> tuple:
+        return tuple(r[k] for k in CELL_KEY) + (-1 if r.get("seed") is None else r["seed"],)
+
+    runs = sorted(rows, key=order)
+    seeded = len({r["seed"] for r in runs}) > 1
     multi = len({r["variant"] for r in rows}) > 1
     lead = (["variant"] if multi else []) + ["shape", "illum"] + \
         (["capture"] if len({r["capture"] for r in rows}) > 1 else []) + ["masks"]
-    full = md_table([{**r, **{SHORT.get(k, k): r.get(k) for k in METRICS}} for r in rows],
-                    lead + ["budget", "steps"] + [SHORT[k] for k in METRICS])
+    full = md_table([{**r, **{SHORT.get(k, k): r.get(k) for k in METRICS}} for r in runs],
+                    lead + ["budget"] + (["seed"] if seeded else []) + ["steps"] + [SHORT[k] for k in METRICS])
+    rows = sorted(mean_over_seeds(runs), key=order)
     # symmetric Chamfer as a compact grid: one row per (shape, illum, masks), one column per budget
     grid_rows = {}
     for r in rows:
@@ -159,6 +214,8 @@ def summarise(rows: list[dict], budgets: list[float]) -> tuple[str, dict]:
         g[f"F {r['budget']:g} s"] = r.get("fscore")
     bcols = [f"{b:g} s" for b in budgets] + [f"F {b:g} s" for b in budgets]
     grid = md_table(list(grid_rows.values()), lead + bcols)
+    if seeded:
+        grid = f"(mean over the seeds {', '.join(str(x) for x in sorted({r['seed'] for r in runs if r['seed'] is not None}))})\n\n" + grid
     checks = {}
     by = {(r["variant"], r["shape"], r["illum"], r["capture"], r["masks"], r["budget"]): r for r in rows}
     ratios_floater, ratios_nomask, ratios_real = [], [], []
@@ -210,6 +267,8 @@ def main() -> None:
                     help="each cell in its own process (auto: on a GPU, so each cell's steps per second are its "
                          "own: a later cell in one process runs with warm caches; one process trains scene after "
                          "scene correctly since the geometry warm-up fix, docs/perf-notes/2026-11-26-geometry-warmup.md)")
+    ap.add_argument("--seeds", default=None, help="training seeds, comma-separated: every cell once per seed "
+                    "(seed=S; the tables use the mean over them)")
     ap.add_argument("--cell", default=None, help=argparse.SUPPRESS)  # internal: run one cell, print its row
     ap.add_argument("overrides", nargs="*", help="key=value applied to every cell (tuning only)")
     args = ap.parse_args()
@@ -218,6 +277,7 @@ def main() -> None:
         return
     for cap in args.captures.split(","):  # a bad capture stops here, not after the cells before it ran
         parse_capture(cap)
+    seeds = parse_seeds(args.seeds)
 
     gpu = args.device.startswith("cuda")
     isolate = args.isolate == "on" or (args.isolate == "auto" and gpu)
@@ -245,7 +305,7 @@ def main() -> None:
             for line in jsonl.read_text().splitlines():
                 r = json.loads(line)
                 done.add((r.get("variant", "default"), r["shape"], r["illum"], r.get("capture", "ideal"), r["masks"],
-                          r["budget"]))
+                          r["budget"], r.get("seed")))
         for shape in args.shapes.split(","):
             for illum in args.illums.split(","):
                 for cap in args.captures.split(","):
@@ -253,12 +313,13 @@ def main() -> None:
                                        Path(args.assets), cap)
                     for masks in args.masks.split(","):
                         for b in budgets:
-                            for vname, vov in variants.items():
-                                if (vname, shape, illum, cap, masks, b) in done:
+                            for (vname, vov), seed in itertools.product(variants.items(), seeds):
+                                if (vname, shape, illum, cap, masks, b, seed) in done:
                                     continue
                                 cname = "" if cap == "ideal" else f"-{cap}"
-                                run = out / "runs" / f"{tag}-{vname}-{shape}-{illum}{cname}-m{masks}-{b:g}s"
-                                ov = list(args.overrides) + vov
+                                sname = "" if seed is None else f"-s{seed}"
+                                run = out / "runs" / f"{tag}-{vname}-{shape}-{illum}{cname}-m{masks}-{b:g}s{sname}"
+                                ov = list(args.overrides) + vov + ([] if seed is None else [f"seed={seed}"])
                                 if isolate:
                                     r = run_cell_isolated(scene, args.device, b, masks, ov, run)
                                     if r is None:
@@ -266,7 +327,7 @@ def main() -> None:
                                 else:
                                     r = run_cell(scene, args.device, b, masks, ov, run)
                                 r.update(variant=vname, shape=shape, illum=illum, capture=cap, masks=masks, budget=b,
-                                         overrides=ov)
+                                         seed=seed, overrides=ov)
                                 print(json.dumps(r), flush=True)
                                 with open(jsonl, "a") as f:
                                     f.write(json.dumps(r) + "\n")

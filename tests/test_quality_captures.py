@@ -32,3 +32,28 @@ def test_a_changed_effect_reaches_the_scene(tmp_path):
     cap = sc.meta["capture"]
     assert cap["speckle"] == 0.0 and cap["blur"] == 0.7 and cap["response"] == "srgb"  # the rest of the mix
     assert sc.root.name == "sphere-dark2-24-realistic-speckle-0"
+
+
+def test_seeds_run_each_cell_and_the_tables_use_their_mean():
+    from quality import parse_seeds, summarise
+
+    assert parse_seeds(None) == [None] and parse_seeds("0,1, 2") == [0, 1, 2]
+    for bad in ("a,b", "1,1", ","):
+        with pytest.raises(SystemExit, match="--seeds"):
+            parse_seeds(bad)
+
+    def row(sym, capture="ideal", **kw):
+        return dict(variant="v", shape="rock", illum="dark", capture=capture, masks="on", budget=10.0, steps=100,
+                    chamfer_gt2rec_mm=sym, chamfer_gt2rec_filtered_mm=sym, chamfer_rec2gt_mm=sym, chamfer_sym_mm=sym,
+                    fscore=0.9, **kw)
+    # seed 1 written by --seeds, seed 0 an older row whose seed is only in its overrides
+    rows = [row(8.0, seed=1), row(6.0, overrides=["time_budget=10", "seed=0"]),
+            row(4.0, capture="realistic", seed=0), row(6.0, capture="realistic", seed=1)]
+    text, checks = summarise(rows, [10.0])
+    grid, full = text.split("All metrics:")
+    assert "mean over the seeds 0, 1" in grid
+    assert "| rock | dark | ideal | on | 7 | 0.9 |" in grid and "| rock | dark | realistic | on | 5 | 0.9 |" in grid
+    assert "| budget | seed | steps |" in full and full.count("| rock |") == 4
+    assert "| ideal | on | 10 | 0 | 100 | 6 |" in full and "| ideal | on | 10 | 1 | 100 | 8 |" in full
+    lo, med = checks["realistic sym / ideal sym (max, median)"]
+    assert lo == pytest.approx(5.0 / 7.0) and med == pytest.approx(5.0 / 7.0)  # means, not one seed's pair
