@@ -216,10 +216,6 @@ class LossSection:
                                     "mask_weight)", lo=0.0)
     mask_start_frac: float = knob(0.3, "where mask_weight_start has fallen to mask_weight (fraction of the run)",
                                   **FRAC)
-    mask_thick: float = knob(1.0, "the mask weight's multiplier away from the masks' thin parts (pixels farther than "
-                             "a thin part's width from any part a k x k opening removes; k = 5 up to 250 px wide, then "
-                             "with the width): thin parts keep the full pull their blurred photo needs, thick ones "
-                             "follow the photos more; 1 = off", lo=0.0, hi=1.0)
     curvature_weight: float = knob(0.0, "smoothness prior |f(x+e) + f(x-e) - 2 f(x)| (oneshot; 0 = off)", lo=0.0)
     cos_anneal_frac: float = knob(0.15, "NeuS cos-anneal ratio 0 -> 1 over this fraction of the run", **FRAC)
     bg_prior: str = knob("auto", "background pixels are free space without masks: auto (>= 5 % of pixels) | on | off",

@@ -104,7 +104,7 @@ def _close(a, b, what):
             torch.testing.assert_close(x, y, rtol=1e-3, atol=1e-4, msg=what)
 
 
-@pytest.mark.parametrize("extra", [[], ["curvature_weight=0.001"], ["hull=loss", "init_radius=0.95"], ["mask_thick=0.3"]])
+@pytest.mark.parametrize("extra", [[], ["curvature_weight=0.001"], ["hull=loss", "init_radius=0.95"]])
 def test_padded_device_schedule_step_matches_the_eager_step(small_scene, tmp_path, extra):
     a, b = _pair(small_scene, tmp_path, "cpu", extra)
     a.opt._scal = torch.zeros(len(a.opt.param_groups), 2)
@@ -149,8 +149,7 @@ def test_device_schedule_gives_the_same_field_and_table_gradients(small_scene, t
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="CUDA graphs need a CUDA device")
-@pytest.mark.parametrize("extra", [[], ["hull=bound"], ["mask_start=on", "mask_weight_start=0.8", "mask_start_frac=0.3"],
-                                   ["mask_thick=0.3"]])
+@pytest.mark.parametrize("extra", [[], ["hull=bound"], ["mask_start=on", "mask_weight_start=0.8", "mask_start_frac=0.3"]])
 def test_cuda_replayed_graph_matches_the_eager_step(tmp_path, extra):
     """Graph steps (first: eager on the side stream + capture; then replays) against eager
     steps on the same inputs: the same loss and parameters after every step. The scene is

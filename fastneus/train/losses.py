@@ -99,19 +99,15 @@ def eikonal(grads: torch.Tensor, weight: float, valid: torch.Tensor | None = Non
     return {"eikonal": weight * r, "eik": r.detach()}
 
 
-def mask_bce(opacity: torch.Tensor, mask: torch.Tensor, weight: float | torch.Tensor,
-             pixel_weight: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
+def mask_bce(opacity: torch.Tensor, mask: torch.Tensor, weight: float | torch.Tensor) -> dict[str, torch.Tensor]:
     """Binary cross-entropy of the rendered opacity against the object mask.
 
     Args:
         opacity: [B] accumulated opacity; mask: [B] in {0, 1}; weight: the scheduled mask weight
-            (``Trainer.mask_weight_at``; a 0-d device tensor inside a captured step);
-        pixel_weight: [B] multiplier per ray in [0, 1] (``loss.mask_thick``), or None (all 1).
+            (``Trainer.mask_weight_at``; a 0-d device tensor inside a captured step).
     """
     op = opacity.clamp(1e-3, 1 - 1e-3)
-    if pixel_weight is None:
-        return {"mask": weight * torch.nn.functional.binary_cross_entropy(op, mask)}
-    return {"mask": weight * torch.nn.functional.binary_cross_entropy(op, mask, weight=pixel_weight)}
+    return {"mask": weight * torch.nn.functional.binary_cross_entropy(op, mask)}
 
 
 def background_free_space(opacity: torch.Tensor, is_bg: torch.Tensor, weight: float) -> dict[str, torch.Tensor]:

@@ -170,42 +170,6 @@ def halo_weights(codes: torch.Tensor, lut: torch.Tensor | None, background: floa
     return out
 
 
-def thin_part_width(width: int) -> int:
-    """The opening's size k (odd) that tells a mask's thin parts from its thick ones in a ``width``-px
-    image: 5 up to 250 px (a 2-3 px leg at 200 px is thin, a 5-px part is not), growing with the width."""
-    return 2 * max(2, int(round(width / 100.0))) + 1
-
-
-def thin_part_weights(mask: torch.Tensor, sizes: list[tuple[int, int]], factor: float) -> torch.Tensor:
-    """[sum HW] uint8 per-pixel multiplier x 255 of the mask loss (``loss.mask_thick``): 255 within
-    k // 2 px of a thin part of the mask (a run of at least 2k pixels that a k x k opening of it
-    removes, k = :func:`thin_part_width`), ``factor`` x 255 everywhere else (thick parts, their
-    outline, the backdrop away from thin parts).
-
-    Args:
-        mask: [sum HW] uint8 masks (> 127 = object), frames concatenated; sizes: (W, H) per frame;
-        factor: in [0, 1].
-    """
-    import cv2
-
-    low = int(round(255 * float(factor)))
-    out = torch.full_like(mask, low, device="cpu")
-    m_all = mask.cpu().numpy()
-    o = 0
-    for w, h in sizes:
-        m = (m_all[o:o + w * h].reshape(h, w) > 127).astype(np.uint8)
-        k = thin_part_width(w)
-        ker = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k))
-        thin = m & (1 - cv2.morphologyEx(m, cv2.MORPH_OPEN, ker))
-        # a digital outline loses a few lone pixels to any opening: a thin part is a run of them
-        n, lab, stats, _ = cv2.connectedComponentsWithStats(thin, connectivity=8)
-        thin = np.isin(lab, 1 + np.flatnonzero(stats[1:, cv2.CC_STAT_AREA] >= 2 * k)).astype(np.uint8)
-        near = cv2.dilate(thin, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * (k // 2) + 1,) * 2)) > 0
-        out[o:o + w * h][torch.from_numpy(near.reshape(-1))] = 255
-        o += w * h
-    return out.to(mask.device)
-
-
 def lut_mean(hist: torch.Tensor, lut: torch.Tensor, n: int) -> torch.Tensor:
     """[3] mean decoded colour from per-channel code histograms ``hist`` [3, 256] of ``n`` pixels."""
     return ((hist.double() @ lut.double().cpu()) / max(1, n)).float()
@@ -575,8 +539,6 @@ def pixel_fields(bank, flat: torch.Tensor, u8: torch.Tensor) -> dict:
     out = {"rgb": to_linear(u8, bank.lut), "sat": u8 >= SATURATED, "pix": flat}
     if bank.mask is not None:
         out["mask"] = bank.mask[flat].float() / 255.0
-        if getattr(bank, "mask_w", None) is not None:  # loss.mask_thick (thin_part_weights)
-            out["mask_w"] = bank.mask_w[flat].float() / 255.0
     soft = getattr(bank, "bg_soft", None)  # the lens's halo weighted in (RayBank.set_halo)
     if soft is not None:
         out["bg"] = soft[flat].float() / 255.0

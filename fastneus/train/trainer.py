@@ -28,7 +28,7 @@ from fastneus.train.progress import ProgressWriter
 from fastneus.train.rig import Rig
 from fastneus.train.rig import load_into as rig_load
 from fastneus.train.rig import state_of as rig_state
-from fastneus.train.rays import RayBank, build_projection, halo_radius, pattern_images, thin_part_weights, thin_part_width
+from fastneus.train.rays import RayBank, build_projection, halo_radius, pattern_images
 from fastneus.data.response import decode_lut, is_identity, resolve_response
 
 
@@ -190,14 +190,6 @@ class Trainer:
         if self.mask_start_used:
             self.masks_note += (f"; {'lit room: ' if ms == 'auto' else ''}mask weight {cfg.loss.mask_weight_start:g} "
                                 f"-> {cfg.loss.mask_weight:g} over the first {cfg.loss.mask_start_frac:.0%} (mask_start)")
-        # a weaker mask pull away from the masks' thin parts (loss.mask_thick; off by default: measured on
-        # the GPU in docs/benchmarks/mask-weight.md, a weaker pull everywhere helps the rock and loses legs)
-        self.bank.mask_w = None
-        if self.masks_used and cfg.loss.mask_thick < 1.0:
-            sizes = [tuple(int(v) for v in row) for row in self.bank.wh.tolist()]
-            self.bank.mask_w = thin_part_weights(self.bank.mask, sizes, cfg.loss.mask_thick)
-            self.masks_note += (f"; mask weight x{cfg.loss.mask_thick:g} away from thin parts (opening "
-                                f"{thin_part_width(sizes[0][0])} px, mask_thick)")
         # grid updates query only the cells near the occupied ones on the CPU (occupancy.occ_update_cells)
         cells = cfg.occupancy.occ_update_cells
         self.occ_near = cells == "near" or (cells == "auto" and self.device.type == "cpu")
@@ -713,8 +705,7 @@ class Trainer:
         # eikonal on the samples plus the uniform points (evaluated with them in shade_samples)
         terms |= losses.eikonal(out["grad_all"], c.loss.eikonal_weight, valid=valid)
         if self.masks_used and "mask" in batch:
-            terms |= losses.mask_bce(opacity, batch["mask"], self.mask_w_dev if capturing else self.mask_weight_at(p),
-                                     batch.get("mask_w"))
+            terms |= losses.mask_bce(opacity, batch["mask"], self.mask_w_dev if capturing else self.mask_weight_at(p))
         elif bg_on:
             ramp = losses.background_ramp(p, c.loss.bg_start_frac)
             is_bg = batch["bg"]
