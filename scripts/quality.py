@@ -305,7 +305,7 @@ def main() -> None:
             for line in jsonl.read_text().splitlines():
                 r = json.loads(line)
                 done.add((r.get("variant", "default"), r["shape"], r["illum"], r.get("capture", "ideal"), r["masks"],
-                          r["budget"], r.get("seed")))
+                          r["budget"], row_seed(r)))
         for shape in args.shapes.split(","):
             for illum in args.illums.split(","):
                 for cap in args.captures.split(","):
@@ -314,12 +314,13 @@ def main() -> None:
                     for masks in args.masks.split(","):
                         for b in budgets:
                             for (vname, vov), seed in itertools.product(variants.items(), seeds):
+                                ov = list(args.overrides) + vov + ([] if seed is None else [f"seed={seed}"])
+                                seed = row_seed({"overrides": ov})  # also a seed=S among the overrides
                                 if (vname, shape, illum, cap, masks, b, seed) in done:
                                     continue
                                 cname = "" if cap == "ideal" else f"-{cap}"
                                 sname = "" if seed is None else f"-s{seed}"
                                 run = out / "runs" / f"{tag}-{vname}-{shape}-{illum}{cname}-m{masks}-{b:g}s{sname}"
-                                ov = list(args.overrides) + vov + ([] if seed is None else [f"seed={seed}"])
                                 if isolate:
                                     r = run_cell_isolated(scene, args.device, b, masks, ov, run)
                                     if r is None:
