@@ -1,7 +1,7 @@
 """Where a training step's wall time goes on the GPU: kernels vs launches vs host syncs.
 
     python scripts/step_profile.py SCENE [--device cuda] [--warm-steps 200] [--steps 20]
-                                   [--out DIR] [key=value ...]
+                                   [--out DIR] [--sync-sites N] [key=value ...]
 
 Builds the device's default trainer (fewview on CUDA, cpu-quick on CPU, plus the overrides),
 trains ``--warm-steps`` steps untimed (so the occupancy grid and the sample counts are those of
@@ -9,8 +9,9 @@ a run under way), then runs ``--steps`` unmodified ``Trainer.train_step`` calls 
 ``torch.profiler`` (CPU and CUDA activity; CUPTI sees Warp's kernels as well as torch's).
 Per step it reports the wall time, the number of GPU kernels and memory copies launched,
 the GPU busy time (the union of the kernel and copy intervals on the device), the share of
-the wall time the GPU is idle, the host syncs (``cudaStreamSynchronize`` /
-``cudaDeviceSynchronize`` / blocking device-to-host copies) and the kernels that take the most
+the wall time the GPU is idle, the host syncs inside the step (``cudaStreamSynchronize`` /
+``cudaDeviceSynchronize`` / ``cudaEventSynchronize``, which blocking device-to-host copies call;
+not the synchronize that ends each measured step) and the kernels that take the most
 device time. A step whose GPU is idle most of the wall time is launch- (host-) bound: faster
 kernels cannot help it, fewer launches (CUDA graphs, fused ops) can.
 
@@ -30,7 +31,62 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from benchutil import (command_line, default_preset, make_trainer, md_table, median, provenance_line,  # noqa: E402
                        ratio, write_results)
 
-SYNC_NAMES = ("cudaStreamSynchronize", "cudaDeviceSynchronize", "cudaEventSynchronize")
+# runtime calls (torch) and their driver twins (Warp calls the driver), where CUPTI reports them
+SYNC_NAMES = ("cudaStreamSynchronize", "cudaDeviceSynchronize", "cudaEventSynchronize",
+              "cuStreamSynchronize", "cuCtxSynchronize", "cuEventSynchronize")
+STEP_RANGE = "fastneus.train_step"
+
+
+def sync_site(stack, filename: str, lineno: int) -> str:
+    """A sync warning's site: its innermost frame in fastneus' own code (``fastneus/`` or
+    ``kernels/``), else the file and line the warning names (torch's internals, e.g. a sync
+    inside the autograd engine's backward).
+
+    Args:
+        stack: ``traceback.extract_stack()`` at the warning; filename, lineno: the warning's.
+    """
+    own = [f for f in stack if "fastneus" in Path(f.filename).parts or "kernels" in Path(f.filename).parts]
+    if own:
+        f = own[-1]
+        return f"{Path(f.filename).name}:{f.lineno} in {f.name}"
+    return f"{Path(filename).name}:{lineno} (outside fastneus)"
+
+
+def sync_sites(tr, steps: int) -> list[dict]:
+    """Where the host waits for the device in ``steps`` training steps: torch's sync debug mode
+    warns at every synchronising torch call (:func:`sync_site` names it). Warp's own waits (a
+    ``wp.synchronize``, an array read on the host) are not torch calls and are not seen here;
+    the profiler's count (:data:`SYNC_NAMES`) includes them where CUPTI reports driver calls.
+
+    Returns:
+        [{"site": "path:line in function", "per_step": float}] most frequent first.
+    """
+    import traceback
+    import warnings
+
+    counts: dict[str, int] = {}
+
+    def note(message, category, filename, lineno, file=None, line=None):
+        if "synchroniz" not in str(message):
+            return
+        key = sync_site(traceback.extract_stack(), filename, lineno)
+        counts[key] = counts.get(key, 0) + 1
+
+    old = warnings.showwarning
+    warnings.showwarning = note
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("always")
+            warnings.showwarning = note
+            torch.cuda.set_sync_debug_mode("warn")
+            try:
+                for _ in range(steps):
+                    tr.train_step()
+            finally:
+                torch.cuda.set_sync_debug_mode("default")
+    finally:
+        warnings.showwarning = old
+    return [{"site": k, "per_step": v / steps} for k, v in sorted(counts.items(), key=lambda kv: -kv[1])]
 
 
 def _union_ms(intervals: list[tuple[float, float]]) -> float:
@@ -50,7 +106,7 @@ def _union_ms(intervals: list[tuple[float, float]]) -> float:
 
 def profile_steps(tr, steps: int, top_n: int = 12) -> dict:
     """Profile ``steps`` training steps one by one; medians over the steps."""
-    from torch.profiler import ProfilerActivity, profile
+    from torch.profiler import ProfilerActivity, profile, record_function
 
     dev = torch.device(tr.device)
     cuda = dev.type == "cuda"
@@ -63,15 +119,20 @@ def profile_steps(tr, steps: int, top_n: int = 12) -> dict:
             torch.cuda.synchronize()
         with profile(activities=acts) as prof:
             t = time.perf_counter()
-            st = tr.train_step()
+            with record_function(STEP_RANGE):
+                st = tr.train_step()
             if cuda:
                 torch.cuda.synchronize()
             wall = (time.perf_counter() - t) * 1000
         evs = prof.events()
+        # the step's own syncs: inside its range (the synchronize that ends the measurement is not the step's)
+        rng = [e.time_range for e in evs if e.name == STEP_RANGE and getattr(e, "device_type", None) is not None
+               and e.device_type.name == "CPU"]
+        lo, hi = (rng[0].start, rng[0].end) if rng else (float("-inf"), float("inf"))
         dev_iv, n_k, n_c, n_sync = [], 0, 0, 0
         for e in evs:
             dt = getattr(e, "device_type", None)
-            on_dev = dt is not None and dt.name == "CUDA"
+            on_dev = dt is not None and dt.name == "CUDA" and e.name != STEP_RANGE  # the range's GPU twin spans the step
             if on_dev:
                 iv = e.time_range
                 dev_iv.append((iv.start, iv.end))
@@ -81,7 +142,7 @@ def profile_steps(tr, steps: int, top_n: int = 12) -> dict:
                 else:
                     n_k += 1
                     kernel_ms[name] = kernel_ms.get(name, 0.0) + (iv.end - iv.start) / 1000.0
-            elif e.name in SYNC_NAMES:
+            elif e.name in SYNC_NAMES and lo <= e.time_range.start <= hi:
                 n_sync += 1
         per["wall_ms"].append(wall)
         per["kernels"].append(n_k)
@@ -118,6 +179,8 @@ def main() -> None:
     ap.add_argument("--steps", type=int, default=20)
     ap.add_argument("--out", default="step-profile")
     ap.add_argument("--top", type=int, default=12, help="how many kernels to list")
+    ap.add_argument("--sync-sites", type=int, default=0, metavar="N",
+                    help="CUDA: also run N steps under torch's sync debug mode and list where the host waits")
     ap.add_argument("overrides", nargs="*", help="key=value config overrides")
     args = ap.parse_intermixed_args()  # key=value overrides may follow the options
 
@@ -136,6 +199,8 @@ def main() -> None:
     # the same steps outside the profiler (its per-launch bookkeeping inflates a host-bound wall)
     m["unprofiled_ms"] = unprofiled_step_ms(tr, max(args.steps, 20))
     m["samples_per_s_M_unprofiled"] = ratio(m["samples"], m["unprofiled_ms"]) / 1000.0
+    if args.sync_sites > 0 and args.device.startswith("cuda"):
+        res["sync_sites"] = sync_sites(tr, args.sync_sites)
     cmd = command_line("step_profile.py")
     head = (f"{provenance_line(args.device, cmd)} Medians per step ({preset} preset, {tr.n_rays} rays per step)."
             "\n\n")
@@ -145,6 +210,9 @@ def main() -> None:
     md += "\n\nKernels taking the most device time (ms per step, share of all kernel time):\n\n"
     md += md_table([{k: (round(v, 3) if isinstance(v, float) else v) for k, v in r.items()}
                     for r in res["top_kernels"]], ["kernel", "ms_per_step", "share_pct"])
+    if res.get("sync_sites"):
+        md += "\n\nWhere the host waits for the device (torch's sync debug mode, per step):\n\n"
+        md += md_table(res["sync_sites"], ["site", "per_step"])
     write_results(out, "step-profile", {"args": vars(args), "preset": preset, "rays": tr.n_rays, **res}, md,
                   args.device, cmd)
     print(md)

@@ -21,6 +21,24 @@ def test_union_of_intervals():
     assert abs(_union_ms(list(reversed(iv))) - 2.5) < 1e-12
 
 
+def test_sync_site_names_the_innermost_own_frame():
+    import traceback
+
+    from step_profile import sync_site
+
+    def fs(path, line, name):
+        return traceback.FrameSummary(path, line, name)
+
+    stack = [fs("/x/scripts/step_profile.py", 5, "main"), fs("/r/fastneus/train/trainer.py", 10, "train_step"),
+             fs("/r/fastneus/train/occupancy.py", 355, "march_rays"), fs("/site/torch/_tensor.py", 99, "item")]
+    assert sync_site(stack, "/site/torch/_tensor.py", 99) == "occupancy.py:355 in march_rays"
+    stack[2] = fs("/r/kernels/march.py", 7, "count")
+    assert sync_site(stack, "/site/torch/_tensor.py", 99) == "march.py:7 in count"
+    # a user's folder called my_fastneus_runs is not fastneus' code
+    other = [fs("/home/u/my_fastneus_runs/x.py", 1, "f"), fs("/site/torch/autograd/__init__.py", 1270, "backward")]
+    assert sync_site(other, "/site/torch/autograd/__init__.py", 1270) == "__init__.py:1270 (outside fastneus)"
+
+
 def test_step_profile_cpu_end_to_end(tmp_path):
     from fastneus.synth.render import synthesize
 
