@@ -72,20 +72,15 @@ def sync_sites(tr, steps: int) -> list[dict]:
         key = sync_site(traceback.extract_stack(), filename, lineno)
         counts[key] = counts.get(key, 0) + 1
 
-    old = warnings.showwarning
-    warnings.showwarning = note
-    try:
-        with warnings.catch_warnings():
-            warnings.simplefilter("always")
-            warnings.showwarning = note
-            torch.cuda.set_sync_debug_mode("warn")
-            try:
-                for _ in range(steps):
-                    tr.train_step()
-            finally:
-                torch.cuda.set_sync_debug_mode("default")
-    finally:
-        warnings.showwarning = old
+    with warnings.catch_warnings():  # restores showwarning and the filters on the way out
+        warnings.simplefilter("always")
+        warnings.showwarning = note
+        torch.cuda.set_sync_debug_mode("warn")
+        try:
+            for _ in range(steps):
+                tr.train_step()
+        finally:
+            torch.cuda.set_sync_debug_mode("default")
     return [{"site": k, "per_step": v / steps} for k, v in sorted(counts.items(), key=lambda kv: -kv[1])]
 
 

@@ -39,6 +39,28 @@ def test_sync_site_names_the_innermost_own_frame():
     assert sync_site(other, "/site/torch/autograd/__init__.py", 1270) == "__init__.py:1270 (outside fastneus)"
 
 
+def test_sync_sites_counts_the_warnings_per_step(monkeypatch):
+    import warnings
+
+    import torch
+    from step_profile import sync_sites
+
+    modes = []
+    monkeypatch.setattr(torch.cuda, "set_sync_debug_mode", modes.append)  # no CUDA here: the warnings by hand
+
+    class Stepper:
+        def train_step(self):
+            for _ in range(2):
+                warnings.warn("called a synchronizing CUDA operation")
+            warnings.warn("something else")  # not a sync: not counted
+
+    before = warnings.showwarning
+    sites = sync_sites(Stepper(), 4)
+    assert modes == ["warn", "default"] and warnings.showwarning is before
+    # this test file is not fastneus' code: the site is the warning's own file and line
+    assert len(sites) == 1 and sites[0]["per_step"] == 2.0 and sites[0]["site"].startswith("test_step_profile.py:")
+
+
 def test_step_profile_cpu_end_to_end(tmp_path):
     from fastneus.synth.render import synthesize
 
