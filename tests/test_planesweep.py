@@ -93,12 +93,16 @@ def test_init_geometry_fits_the_swept_surface(colorline_scene_fixed, tmp_path):
     assert float(f_after.mean()) < 0.5 * float(f_before.mean())
 
 
-def test_wide_photos_are_swept_downsampled(colorline_scene):
+def test_wide_photos_are_swept_downsampled(colorline_scene_fixed):
     """A photo wider than max_width is swept on an area-downsampled grid with its K scaled: the
-    depths stay right (same accuracy bounds, against the GT depth downsampled the same way)."""
+    depths stay right (same accuracy bounds, against the GT depth downsampled the same way).
+
+    The fixed-seed scene: how many pixels a 96-px sweep keeps depends on the scene far more than its
+    accuracy does (7-312 over 41 random seeds, median error 0.16-0.71 % on all of them; seed 914098
+    kept 7 and failed a CI run's ">= 10"), so a random scene makes the count flaky."""
     import cv2
 
-    sc = colorline_scene
+    sc = colorline_scene_fixed
     d, _, K = planesweep_depth(sc, 0, max_width=96)
     assert d.shape == (96, 96)
     K0 = sc.frame_camera(0).K
@@ -108,11 +112,11 @@ def test_wide_photos_are_swept_downsampled(colorline_scene):
     fg = cv2.resize((gt > 0).astype(np.float32), (96, 96), interpolation=cv2.INTER_AREA) > 0.999
     ok = np.isfinite(d) & fg
     # few: 96 px resolve few stripes and the silhouette ring / edge skipping takes a larger share
-    # (17-332 points over 30 seeds), but what is kept is right
-    assert ok.sum() >= 10, f"scene seed {sc.test_seed}"
+    # (72 points on this seed), but what is kept is right
+    assert ok.sum() >= 30, f"scene seed {sc.test_seed}"
     err = np.abs(d[ok] - near[ok]) / near[ok]
-    # one run in this repository's history failed at a 14 % median (seed not recorded then; 360
-    # seeds tried afterwards all pass the median)
+    # one run in this repository's history failed at a 14 % median (seed not recorded then; 400
+    # random seeds tried afterwards all pass the median)
     assert np.median(err) < 0.01, (np.median(err), f"scene seed {sc.test_seed}")
 
 
