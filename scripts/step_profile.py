@@ -1,7 +1,7 @@
 """Where a training step's wall time goes on the GPU: kernels vs launches vs host syncs.
 
     python scripts/step_profile.py SCENE [--device cuda] [--warm-steps 200] [--steps 20]
-                                   [--out DIR] [--sync-sites N] [key=value ...]
+                                   [--out DIR] [--sync-sites N] [--timeline K] [key=value ...]
 
 Builds the device's default trainer (fewview on CUDA, cpu-quick on CPU, plus the overrides),
 trains ``--warm-steps`` steps untimed (so the occupancy grid and the sample counts are those of
@@ -14,6 +14,11 @@ the wall time the GPU is idle, the host syncs inside the step (``cudaStreamSynch
 not the synchronize that ends each measured step) and the kernels that take the most
 device time. A step whose GPU is idle most of the wall time is launch- (host-) bound: faster
 kernels cannot help it, fewer launches (CUDA graphs, fused ops) can.
+
+``--timeline K`` (CUDA) profiles K steps back to back, with no synchronize between them (the
+steady state, where a step's host work overlaps the previous step's GPU work), and reports the
+device's span, its busy time and its idle gaps, summed per pair of neighbouring operations: an idle
+that follows the march's count read is the host's work between that sync and the next launch.
 
 Writes ``OUT/step-profile.json`` and ``OUT/step-profile.md``; prints the Markdown.
 """
@@ -99,6 +104,66 @@ def _union_ms(intervals: list[tuple[float, float]]) -> float:
     return tot / 1000.0
 
 
+def device_gaps(ops: list[tuple[float, float, str]], min_gap_us: float = 0.0, top_n: int = 12) -> dict:
+    """Idle time of a device between its operations, summed per (previous op, next op) pair.
+
+    Args:
+        ops: [(start_us, end_us, name)] device operations (kernels, copies), any order; overlapping
+            ones (several streams) count as busy together.
+        min_gap_us: gaps at most this long are summed into ``small_gaps_ms`` but not listed.
+        top_n: how many (previous, next) pairs to list.
+    Returns:
+        {"span_ms", "busy_ms", "idle_ms", "small_gaps_ms", "n_gaps",
+         "gaps": [{"after", "before", "count", "ms"}] largest first}.
+    """
+    ops = sorted(ops)
+    if not ops:
+        return {"span_ms": 0.0, "busy_ms": 0.0, "idle_ms": 0.0, "small_gaps_ms": 0.0, "n_gaps": 0, "gaps": []}
+    pairs: dict[tuple[str, str], list[float]] = {}
+    small, n_gaps, last_end, last_name = 0.0, 0, ops[0][1], ops[0][2]
+    for s, e, name in ops[1:]:
+        if s > last_end:
+            gap = s - last_end
+            n_gaps += 1
+            if gap <= min_gap_us:
+                small += gap
+            else:
+                acc = pairs.setdefault((last_name[:60], name[:60]), [0, 0.0])
+                acc[0] += 1
+                acc[1] += gap
+        if e >= last_end:
+            last_end, last_name = e, name
+    span = (last_end - ops[0][0]) / 1000.0
+    busy = _union_ms([(s, e) for s, e, _ in ops])
+    top = sorted(pairs.items(), key=lambda kv: -kv[1][1])[:top_n]
+    return {"span_ms": span, "busy_ms": busy, "idle_ms": span - busy, "small_gaps_ms": small / 1000.0,
+            "n_gaps": n_gaps, "gaps": [{"after": a, "before": b, "count": c, "ms": ms / 1000.0}
+                                       for (a, b), (c, ms) in top]}
+
+
+def timeline(tr, steps: int, top_n: int = 12) -> dict:
+    """``steps`` training steps back to back under the profiler (no synchronize between them);
+    the device's gaps (:func:`device_gaps`, gaps over 5 us listed), per step."""
+    from torch.profiler import ProfilerActivity, profile
+
+    torch.cuda.synchronize()
+    samples = 0.0
+    with profile(activities=[ProfilerActivity.CPU, ProfilerActivity.CUDA]) as prof:
+        t = time.perf_counter()
+        for _ in range(steps):
+            st = tr.train_step()
+            samples += float(st.get("samples", 0)) if isinstance(st, dict) else 0.0
+        torch.cuda.synchronize()
+        wall = (time.perf_counter() - t) * 1000
+    ops = [(e.time_range.start, e.time_range.end, e.name) for e in prof.events()
+           if getattr(e, "device_type", None) is not None and e.device_type.name == "CUDA"]
+    g = device_gaps(ops, min_gap_us=5.0, top_n=top_n)
+    per = {k: g[k] / steps for k in ("span_ms", "busy_ms", "idle_ms", "small_gaps_ms")}
+    return {"steps": steps, "wall_ms": wall / steps, "samples": samples / steps, **per,
+            "gaps_per_step": g["n_gaps"] / steps,
+            "gaps": [{**r, "count": r["count"] / steps, "ms": r["ms"] / steps} for r in g["gaps"]]}
+
+
 def profile_steps(tr, steps: int, top_n: int = 12) -> dict:
     """Profile ``steps`` training steps one by one; medians over the steps."""
     from torch.profiler import ProfilerActivity, profile, record_function
@@ -176,6 +241,8 @@ def main() -> None:
     ap.add_argument("--top", type=int, default=12, help="how many kernels to list")
     ap.add_argument("--sync-sites", type=int, default=0, metavar="N",
                     help="CUDA: also run N steps under torch's sync debug mode and list where the host waits")
+    ap.add_argument("--timeline", type=int, default=0, metavar="K",
+                    help="CUDA: also profile K steps back to back and list the device's idle gaps")
     ap.add_argument("overrides", nargs="*", help="key=value config overrides")
     args = ap.parse_intermixed_args()  # key=value overrides may follow the options
 
@@ -196,6 +263,8 @@ def main() -> None:
     m["samples_per_s_M_unprofiled"] = ratio(m["samples"], m["unprofiled_ms"]) / 1000.0
     if args.sync_sites > 0 and args.device.startswith("cuda"):
         res["sync_sites"] = sync_sites(tr, args.sync_sites)
+    if args.timeline > 0 and args.device.startswith("cuda"):
+        res["timeline"] = timeline(tr, args.timeline, args.top)
     cmd = command_line("step_profile.py")
     head = (f"{provenance_line(args.device, cmd)} Medians per step ({preset} preset, {tr.n_rays} rays per step)."
             "\n\n")
@@ -208,6 +277,14 @@ def main() -> None:
     if res.get("sync_sites"):
         md += "\n\nWhere the host waits for the device (torch's sync debug mode, per step):\n\n"
         md += md_table(res["sync_sites"], ["site", "per_step"])
+    if res.get("timeline"):
+        tl = res["timeline"]
+        md += (f"\n\n{tl['steps']} steps back to back (no sync between), per step: wall {tl['wall_ms']:.2f} ms, "
+               f"device span {tl['span_ms']:.2f}, busy {tl['busy_ms']:.2f}, idle {tl['idle_ms']:.2f} "
+               f"({tl['gaps_per_step']:.0f} gaps, {tl['small_gaps_ms']:.2f} ms in gaps <= 5 us), "
+               f"{tl['samples']:.0f} samples. The largest idle gaps, by the operations either side:\n\n")
+        md += md_table([{k: (round(v, 3) if isinstance(v, float) else v) for k, v in r.items()} for r in tl["gaps"]],
+                       ["after", "before", "count", "ms"])
     write_results(out, "step-profile", {"args": vars(args), "preset": preset, "rays": tr.n_rays, **res}, md,
                   args.device, cmd)
     print(md)

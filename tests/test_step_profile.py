@@ -78,3 +78,20 @@ def test_step_profile_cpu_end_to_end(tmp_path):
     m = data["median"]
     assert m["wall_ms"] > 0 and m["samples"] > 0 and m["kernels"] == 0  # no GPU: no device kernels
     assert "| wall_ms |" in (out / "step-profile.md").read_text()
+
+
+def test_device_gaps_sum_idle_per_neighbour_pair():
+    """Gaps between device ops are attributed to the ops either side; overlaps count as busy; gaps
+    at most min_gap_us are only summed."""
+    from step_profile import device_gaps
+
+    ops = [(0.0, 10.0, "a"), (5.0, 12.0, "b"),        # overlap: busy 0-12
+           (112.0, 120.0, "c"),                       # 100 us after b
+           (123.0, 130.0, "a"),                       # 3 us: a small gap
+           (230.0, 240.0, "b"), (340.0, 350.0, "c")]  # 100 us after a, then 100 us after b
+    g = device_gaps(list(reversed(ops)), min_gap_us=5.0)
+    assert abs(g["span_ms"] - 0.350) < 1e-9 and abs(g["busy_ms"] - 0.047) < 1e-9
+    assert abs(g["idle_ms"] - 0.303) < 1e-9 and abs(g["small_gaps_ms"] - 0.003) < 1e-9 and g["n_gaps"] == 4
+    by = {(r["after"], r["before"]): (r["count"], r["ms"]) for r in g["gaps"]}
+    assert by == {("b", "c"): (2, 0.2), ("a", "b"): (1, 0.1)}
+    assert device_gaps([])["span_ms"] == 0.0
