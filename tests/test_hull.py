@@ -195,3 +195,35 @@ def test_hull_margin_keeps_the_term_away_from_the_hull(torus_scene, tmp_path):
     assert bool((wide & ~plain).sum() == 0) and int(wide.sum()) < int(plain.sum())
     assert not bool((wide & near).any()) and bool((plain & near).any())
     assert torch.equal(wide, plain & ~near)
+
+
+def test_hull_cells_stay_occupied_for_hull_keep_frac(torus_scene, tmp_path):
+    """``hull_keep=on``: a grid update before ``hull_keep_frac`` of the run leaves every cell of the
+    masks' hull occupied, even where the field says empty (a thin part not formed yet); after it,
+    the update alone decides; off keeps nothing, and auto only in a dark room (this torus is lit)."""
+    r = 32
+    tr = _trainer(torus_scene, tmp_path / "k", ["hull=loss", "hull_keep=on", "hull_keep_frac=0.5",
+                                                "occ_warmup_frac=0.1"])
+    off = _trainer(torus_scene, tmp_path / "o", ["hull=loss", "hull_keep=off"])
+    auto = _trainer(torus_scene, tmp_path / "a", ["hull=loss", "hull_keep=auto"])
+    assert off.hull_in is None and "hull_keep" not in off.hull_note
+    assert not auto.stop_dark_room and auto.hull_in is None
+    assert tr.hull_in is not None and "stay occupied for the first 50% of the run" in tr.hull_note
+    inside = tr.hull_in.bool()
+    assert torch.equal(inside, (tr.hull_out == 0) & tr.seen)  # hull_margin=0: the term's space is the rest
+    # a field that is empty everywhere (SDF 1): a plain update clears every cell
+    with torch.no_grad():
+        for t in (tr, off):
+            t.field.sdf_net[-1].bias.fill_(1.0)
+            t.field.sdf_net[-1].weight.zero_()
+    for t in (tr, off):
+        t.step = 0
+        t._grid_open = False
+    tr.update_grid(0.3)
+    off.update_grid(0.3)
+    assert int(off.grid.bits.sum()) == 0
+    assert torch.equal(tr.grid.bits.bool(), inside) and int(inside.sum()) > 0
+    tr.step = tr.cfg.occupancy.occ_update_every  # due again, now past the fraction
+    tr.update_grid(0.6)
+    assert int(tr.grid.bits.sum()) == 0
+    assert r ** 3 == tr.grid.num_cells

@@ -40,6 +40,9 @@ def test_dark_room_with_masks_turns_it_on(small_scene, tmp_path, monkeypatch):
     assert "dark room: rays end 3 grid cells inside the object (stop_rays)" in tr.masks_note
     assert not _trainer(small_scene, tmp_path / "nomask", ["masks=off"]).stop_used  # no masks: auto is off
     assert not _trainer(small_scene, tmp_path / "off", ["stop_rays=off"]).stop_used
+    # the same dark room keeps the masks' hull occupied (cpu-quick: occupancy.hull_keep=auto)
+    assert tr.hull_in is not None and "dark room: its cells stay occupied for the whole run (hull_keep)" in tr.hull_note
+    assert _trainer(small_scene, tmp_path / "nokeep", ["hull_keep=off"]).hull_in is None
 
 
 def test_a_step_marches_with_the_grids_stop_cells(small_scene, tmp_path, monkeypatch):

@@ -177,6 +177,7 @@ class Trainer:
         # read once: it looks at every training pixel)
         room_known = self.masks_used and hasattr(self.bank, "dark_object")
         dark_object = room_known and self.bank.dark_object()
+        self.stop_dark_room = bool(dark_object)  # masks, lasers in a dark room (stop_rays, hull_keep)
         self.stop_used = mode == "on" or (mode == "auto" and dark_object)
         if self.stop_used:
             self.masks_note += (f"; {'dark room: ' if mode == 'auto' else ''}rays end {cfg.occupancy.stop_inside:g} "
@@ -239,6 +240,7 @@ class Trainer:
 
             self.seen = seen_cells(scene, self.frames, cfg.occupancy.occ_resolution, self.device, cfg.occupancy.min_views)
         self.hull_out = None  # [R^3] float, 1 where the masks say the space is empty (occupancy.hull)
+        self.hull_in = None  # [R^3] uint8, 1 inside the masks' hull: kept occupied early (occupancy.hull_keep_frac)
         self.hull_note = self._masks_hull()
         if self.seen is not None:
             self.grid.set_allowed(self.seen)
@@ -420,9 +422,14 @@ class Trainer:
         self.hull_out = (seen & ~term).float()
         if mode == "bound":
             self.seen = seen & hull
+        keep = ""
+        if c.hull_keep_frac > 0 and (c.hull_keep == "on" or (c.hull_keep == "auto" and self.stop_dark_room)):
+            self.hull_in = (seen & hull).to(torch.uint8)
+            span = "the whole run" if c.hull_keep_frac >= 1 else f"the first {c.hull_keep_frac:.0%} of the run"
+            keep = f"; {'dark room: ' if c.hull_keep == 'auto' else ''}its cells stay occupied for {span} (hull_keep)"
         return (f"occupancy: hull {c.hull}{' -> ' + mode if c.hull == 'auto' else ''}: the masks' visual hull "
                 f"({100 * seen_fraction(seen & hull):.1f} % of the unit ball{widened}) "
-                f"{'bounds the grid, and ' if mode == 'bound' else ''}the SDF is pushed positive outside it")
+                f"{'bounds the grid, and ' if mode == 'bound' else ''}the SDF is pushed positive outside it{keep}")
 
     def update_grid(self, p: float) -> None:
         c = self.cfg
@@ -439,6 +446,11 @@ class Trainer:
                              backend=c.run.backend,
                              inside=c.occupancy.stop_inside * 2.0 / self.grid.resolution if self.stop_used else 0.0,
                              near=c.occupancy.occ_near_rest if self.occ_near else None)
+            if self.hull_in is not None and p < c.occupancy.hull_keep_frac:
+                # the masks' hull stays sampled while the field may not have formed a thin part yet: pruned
+                # at the first update, a leg got no samples and the masks could not pull it in. A cell deep
+                # inside (grid.stop) still ends a ray, so the kept interior costs few samples.
+                self.grid.bits |= self.hull_in
 
     def decide_camera_blur(self) -> dict:
         """``camera_blur=auto``: estimate the blur from the data (:func:`fastneus.train.blurfit.
