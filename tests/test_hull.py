@@ -227,3 +227,51 @@ def test_hull_cells_stay_occupied_for_hull_keep_frac(torus_scene, tmp_path):
     tr.update_grid(0.6)
     assert int(tr.grid.bits.sum()) == 0
     assert r ** 3 == tr.grid.num_cells
+
+
+def test_photo_masks_keep_the_object_and_drop_specks():
+    """The photos' masks (no masks on disk): what the backdrop flags do not claim, less specks of
+    noise, dilated by a pixel."""
+    from types import SimpleNamespace
+
+    from fastneus.train.rays import PHOTO_MASK_SPECK, photo_masks
+
+    h, w = 20, 24
+    bg = torch.ones(2, h, w, dtype=torch.bool)
+    bg[0, 5:11, 6:9] = False          # an object, 18 px, with a 1-px leg
+    bg[0, 11:16, 7] = False
+    bg[0, 2, 20] = False              # a speck of noise
+    bg[1, 0:2, 0:2] = False           # a 4-px blob: under the speck size
+    bank = SimpleNamespace(bg=bg.reshape(-1), wh=torch.tensor([[w, h], [w, h]]), offset=torch.tensor([0, h * w]))
+    out = photo_masks(bank, [3, 7])
+    assert [i for i, _ in out] == [3, 7] and all(m.shape == (h, w) for _, m in out)
+    m0, m1 = out[0][1], out[1][1]
+    obj = ~bg[0].numpy()
+    obj[2, 20] = False
+    assert m0[obj].all() and not m0[2, 20] and m0[4, 5] and m0[16, 7] and not m0[0, 0]   # dilated by one
+    assert int(m0.sum()) <= int(obj.sum()) * 5 and 4 < PHOTO_MASK_SPECK and not m1.any()
+    assert photo_masks(SimpleNamespace(bg=None), [0]) is None
+
+
+def test_a_dark_room_without_masks_gets_the_photos_hull(torus_scene, tmp_path, monkeypatch):
+    """photo_hull=auto (cpu-quick): without masks, with the foreground prior on (a dark room), the
+    hull is built from the photos; off, or with the prior off (a lit room), there is none."""
+    import fastneus.train.trainer as trainer_mod
+
+    s = torus_scene
+    lit = _trainer(s, tmp_path / "lit", ["masks=off"])
+    assert not lit.fg_used and lit.hull_out is None and "no masks, no hull" in lit.hull_note
+    monkeypatch.setattr(trainer_mod, "DARK_ROOM", 0.0)  # every scene with a backdrop is a dark room now
+    tr = _trainer(s, tmp_path / "dark", ["masks=off", "bg_prior=on"])
+    assert tr.fg_used and tr.hull_out is not None, tr.hull_note
+    assert "the photos' non-background pixels' visual hull" in tr.hull_note
+    off = _trainer(s, tmp_path / "off", ["masks=off", "bg_prior=on", "photo_hull=off"])
+    assert off.hull_out is None and "no masks, no hull" in off.hull_note
+    # the photos' hull holds the object as the masks' does (sampled GT surface inside it)
+    masked = _trainer(s, tmp_path / "m", [])
+    r = tr.grid.resolution
+    p = _gt_points(s, 4000)
+    inside = (tr.hull_out == 0)[_cell(p, r)]
+    assert float(inside.float().mean()) > 0.99 and masked.hull_out is not None
+    for _ in range(2):
+        tr.train_step()

@@ -28,7 +28,7 @@ from fastneus.train.progress import ProgressWriter
 from fastneus.train.rig import Rig
 from fastneus.train.rig import load_into as rig_load
 from fastneus.train.rig import state_of as rig_state
-from fastneus.train.rays import RayBank, build_projection, halo_radius, pattern_images
+from fastneus.train.rays import RayBank, build_projection, halo_radius, pattern_images, photo_masks
 from fastneus.data.response import decode_lut, is_identity, resolve_response
 
 
@@ -403,18 +403,25 @@ class Trainer:
         if c.hull == "off":
             return "occupancy: hull off"
         mode = "loss" if c.hull == "auto" else c.hull
-        if not self.masks_used:
+        # without masks, a dark room's photos are masks of their own: what the backdrop flags do not
+        # claim (ideal ant, Dark, no masks, CPU 600 steps: 9.66 -> 8.15 mm over three seeds)
+        photo = (c.photo_hull == "auto" and not self.masks_used and self.fg_used and isinstance(self.bank, RayBank))
+        if not self.masks_used and not photo:
             return "occupancy: no masks, no hull"
         if any(self.scene.frame_camera(i).port is not None for i in self.frames):
             return "occupancy: no hull (a camera behind a flat port: its rays bend)"
         from fastneus.train.visibility import consistent_hull, dilate_cells, seen_fraction
 
-        hull, pad, worst = consistent_hull(self.scene, self.frames, c.occ_resolution, self.device)
+        masks = photo_masks(self.bank, self.frames) if photo else None
+        what = "the photos' non-background pixels" if photo else "the masks"
+        if photo and masks is None:
+            return "occupancy: no masks, no hull"
+        hull, pad, worst = consistent_hull(self.scene, self.frames, c.occ_resolution, self.device, masks=masks)
         if hull is None and worst > 0:
-            return (f"occupancy: no hull (the masks and the poses disagree: {100 * worst:.1f} % of a view's mask "
-                    f"lies outside the hull even at {pad:g} px of extra pad)")
+            return (f"occupancy: no hull ({what} and the poses disagree: {100 * worst:.1f} % of a view's "
+                    f"{'non-background pixels' if photo else 'mask'} lies outside the hull even at {pad:g} px of extra pad)")
         if hull is None or not bool(hull.any()):
-            return "occupancy: no hull (no non-empty masks)"
+            return f"occupancy: no hull (no non-empty {'photo masks' if photo else 'masks'})"
         widened = f", widened by {pad:g} px to cover every view's mask" if pad > 0 else ""
         seen = self.seen if self.seen is not None else torch.ones_like(hull)
         # the term's space starts hull_margin cells beyond the hull
@@ -427,7 +434,7 @@ class Trainer:
             self.hull_in = (seen & hull).to(torch.uint8)
             span = "the whole run" if c.hull_keep_frac >= 1 else f"the first {c.hull_keep_frac:.0%} of the run"
             keep = f"; {'dark room: ' if c.hull_keep == 'auto' else ''}its cells stay occupied for {span} (hull_keep)"
-        return (f"occupancy: hull {c.hull}{' -> ' + mode if c.hull == 'auto' else ''}: the masks' visual hull "
+        return (f"occupancy: hull {c.hull}{' -> ' + mode if c.hull == 'auto' else ''}: {what}' visual hull "
                 f"({100 * seen_fraction(seen & hull):.1f} % of the unit ball{widened}) "
                 f"{'bounds the grid, and ' if mode == 'bound' else ''}the SDF is pushed positive outside it{keep}")
 

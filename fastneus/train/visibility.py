@@ -209,7 +209,8 @@ HULL_TOLERANCE = 0.002  # share of a view's mask pixels the hull may leave uncov
 
 
 def consistent_hull(scene, frames: list[int], resolution: int, device, pads=HULL_PADS,
-                    tol: float = HULL_TOLERANCE) -> tuple[torch.Tensor | None, float, float]:
+                    tol: float = HULL_TOLERANCE, masks: list[tuple[int, np.ndarray]] | None = None
+                    ) -> tuple[torch.Tensor | None, float, float]:
     """The tightest hull of :func:`hull_cells` (widened by each of ``pads`` px in turn) that covers
     every masked view's foreground (:func:`hull_uncovered` at most ``tol`` in every view).
 
@@ -220,10 +221,13 @@ def consistent_hull(scene, frames: list[int], resolution: int, device, pads=HULL
     once it covers the masks), so it is widened until it covers them, and dropped when even the
     widest does not.
 
+    Args:
+        masks: (frame, foreground [H, W] bool) per viewpoint in place of the scene's masks (e.g. the
+            photos' non-background pixels without masks: :func:`fastneus.train.rays.photo_masks`).
     Returns:
         (hull [R^3] bool or None, the extra pad used (px), the worst view's uncovered share at it).
     """
-    masks = _hull_masks(scene, frames)
+    masks = _hull_masks(scene, frames) if masks is None else [(i, m) for i, m in masks if m.any()]
     if masks is None:
         return None, 0.0, 0.0
     world, half = _cell_centres(scene, int(resolution), torch.device(device), torch.float32)  # once for every width
