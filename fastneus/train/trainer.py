@@ -413,6 +413,11 @@ class Trainer:
         from fastneus.train.visibility import consistent_hull, dilate_cells, seen_fraction
 
         masks = photo_masks(self.bank, self.frames) if photo else None
+        if masks is not None:  # frames sharing a viewpoint count once, as masks do (visibility._hull_masks)
+            first: dict = {}
+            for i, m in masks:
+                first.setdefault(self.scene.frames[i].view, (i, m))
+            masks = list(first.values())
         what = "the photos' non-background pixels" if photo else "the masks"
         if photo and masks is None:
             return "occupancy: no masks, no hull"
