@@ -147,8 +147,8 @@ class OccupancySection:
     hull_weight: float = knob(1.0, "weight of the hull's free-space term (mean over the uniform points)", lo=0.0)
     photo_hull: str = knob("off", "without masks in a dark room (the foreground prior on), the hull of the photos' "
                            "non-background pixels (specks of noise left out) stands in for the masks' in `hull`: auto "
-                           "(cpu-quick's choice: ideal ant, Dark, no masks, 600 steps, 3 seeds 9.66 -> 8.15 mm, realistic "
-                           "13.72 -> 12.91) | off; dropped, with its reason printed, where the views disagree (a noisy "
+                           "(cpu-quick's choice: ant, Dark, no masks, 600 steps, 3 seeds: ideal 8.05 -> 6.52 mm symmetric, "
+                           "realistic 13.01 -> 11.59) | off; dropped, with its reason printed, where the views disagree (a noisy "
                            "backdrop); the GPU preset is not measured yet", choices=("auto", "off"))
     hull_keep: str = knob("off", "with masks: the hull's cells stay occupied in the grid (for hull_keep_frac of the "
                           "run), so a thin part the field has not formed when the grid first prunes is still sampled "

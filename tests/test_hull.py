@@ -207,7 +207,7 @@ def test_hull_cells_stay_occupied_for_hull_keep_frac(torus_scene, tmp_path):
     off = _trainer(torus_scene, tmp_path / "o", ["hull=loss", "hull_keep=off"])
     auto = _trainer(torus_scene, tmp_path / "a", ["hull=loss", "hull_keep=auto"])
     assert off.hull_in is None and "hull_keep" not in off.hull_note
-    assert not auto.stop_dark_room and auto.hull_in is None
+    assert not auto.dark_room and auto.hull_in is None
     assert tr.hull_in is not None and "stay occupied for the first 50% of the run" in tr.hull_note
     inside = tr.hull_in.bool()
     assert torch.equal(inside, (tr.hull_out == 0) & tr.seen)  # hull_margin=0: the term's space is the rest
@@ -244,8 +244,8 @@ def test_photo_masks_keep_the_object_and_drop_specks():
     bg[1, 0:2, 0:2] = False           # a 4-px blob: under the speck size
     bank = SimpleNamespace(bg=bg.reshape(-1), wh=torch.tensor([[w, h], [w, h]]), offset=torch.tensor([0, h * w]))
     out = photo_masks(bank, [3, 7])
-    assert [i for i, _ in out] == [3, 7] and all(m.shape == (h, w) for _, m in out)
-    m0, m1 = out[0][1], out[1][1]
+    assert list(out) == [3, 7] and all(m.shape == (h, w) for m in out.values())
+    m0, m1 = out[3], out[7]
     obj = ~bg[0].numpy()
     obj[2, 20] = False
     assert m0[obj].all() and not m0[2, 20] and m0[4, 5] and m0[16, 7] and not m0[0, 0]   # dilated by one
@@ -275,3 +275,20 @@ def test_a_dark_room_without_masks_gets_the_photos_hull(torus_scene, tmp_path, m
     assert float(inside.float().mean()) > 0.99 and masked.hull_out is not None
     for _ in range(2):
         tr.train_step()
+
+
+def test_photo_masks_count_once_per_viewpoint(torus_scene):
+    """Given masks go through the scene masks' rule: frames sharing a viewpoint count once (the first
+    one's), an empty one says nothing, a missing one means no hull."""
+    from fastneus.train.visibility import _hull_masks
+
+    s = torus_scene
+    frames = list(range(len(s.frames)))
+    given = {i: s.mask(i) >= 0.5 for i in frames}
+    assert [i for i, _ in _hull_masks(s, frames, given)] == [i for i, _ in _hull_masks(s, frames)]
+    views = [s.frames[i].view for i in frames]
+    assert len(_hull_masks(s, frames, given)) == len(set(views))
+    given[frames[1]] = np.zeros_like(given[frames[1]])
+    assert frames[1] not in [i for i, _ in _hull_masks(s, frames, given)]
+    del given[frames[2]]
+    assert _hull_masks(s, frames, given) is None

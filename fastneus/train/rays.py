@@ -129,7 +129,7 @@ def foreground_flags(codes: torch.Tensor, lut: torch.Tensor | None, background: 
 PHOTO_MASK_SPECK = 6  # px: a non-background blob smaller than this is the photo's noise, not the object
 
 
-def photo_masks(bank, frames: list[int]) -> list[tuple[int, np.ndarray]] | None:
+def photo_masks(bank, frames: list[int]) -> dict[int, np.ndarray] | None:
     """Masks read off the photos of a dark room (no masks on disk): every pixel the backdrop flags do
     not claim (the lit and the ambient-lit object, the lens's halo), less specks under
     :data:`PHOTO_MASK_SPECK` px (noise over the backdrop's tolerance), dilated by a pixel.
@@ -138,13 +138,13 @@ def photo_masks(bank, frames: list[int]) -> list[tuple[int, np.ndarray]] | None:
         bank: a :class:`RayBank` with background flags (``bg``); frames: scene frame index per bank
             frame (the trainer's ``frames``).
     Returns:
-        [(frame, foreground [H, W] bool)], or None without background flags.
+        {frame: foreground [H, W] bool}, or None without background flags.
     """
     import cv2
 
     if getattr(bank, "bg", None) is None or not hasattr(bank, "wh"):
         return None
-    out = []
+    out = {}
     for a, i in enumerate(frames):
         w, h = (int(x) for x in bank.wh[a].tolist())
         o = int(bank.offset[a])
@@ -152,7 +152,7 @@ def photo_masks(bank, frames: list[int]) -> list[tuple[int, np.ndarray]] | None:
         n, lab, st, _ = cv2.connectedComponentsWithStats(nb, connectivity=8)
         keep = np.zeros(n, bool)
         keep[1:] = st[1:, cv2.CC_STAT_AREA] >= PHOTO_MASK_SPECK
-        out.append((i, cv2.dilate(keep[lab].astype(np.uint8), np.ones((3, 3), np.uint8)) > 0))
+        out[i] = cv2.dilate(keep[lab].astype(np.uint8), np.ones((3, 3), np.uint8)) > 0
     return out
 
 

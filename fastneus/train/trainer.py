@@ -177,7 +177,7 @@ class Trainer:
         # read once: it looks at every training pixel)
         room_known = self.masks_used and hasattr(self.bank, "dark_object")
         dark_object = room_known and self.bank.dark_object()
-        self.stop_dark_room = bool(dark_object)  # masks, lasers in a dark room (stop_rays, hull_keep)
+        self.dark_room = bool(dark_object)  # with masks: lasers in a dark room (stop_rays, hull_keep)
         self.stop_used = mode == "on" or (mode == "auto" and dark_object)
         if self.stop_used:
             self.masks_note += (f"; {'dark room: ' if mode == 'auto' else ''}rays end {cfg.occupancy.stop_inside:g} "
@@ -240,7 +240,7 @@ class Trainer:
 
             self.seen = seen_cells(scene, self.frames, cfg.occupancy.occ_resolution, self.device, cfg.occupancy.min_views)
         self.hull_out = None  # [R^3] float, 1 where the masks say the space is empty (occupancy.hull)
-        self.hull_in = None  # [R^3] uint8, 1 inside the masks' hull: kept occupied early (occupancy.hull_keep_frac)
+        self.hull_in = None  # [R^3] uint8, 1 inside the hull: kept occupied (occupancy.hull_keep, hull_keep_frac)
         self.hull_note = self._masks_hull()
         if self.seen is not None:
             self.grid.set_allowed(self.seen)
@@ -404,7 +404,7 @@ class Trainer:
             return "occupancy: hull off"
         mode = "loss" if c.hull == "auto" else c.hull
         # without masks, a dark room's photos are masks of their own: what the backdrop flags do not
-        # claim (ideal ant, Dark, no masks, CPU 600 steps: 9.66 -> 8.15 mm over three seeds)
+        # claim (ant, Dark, no masks, CPU 600 steps, three seeds: ideal 8.05 -> 6.52 mm, realistic 13.01 -> 11.59)
         photo = (c.photo_hull == "auto" and not self.masks_used and self.fg_used and isinstance(self.bank, RayBank))
         if not self.masks_used and not photo:
             return "occupancy: no masks, no hull"
@@ -413,11 +413,6 @@ class Trainer:
         from fastneus.train.visibility import consistent_hull, dilate_cells, seen_fraction
 
         masks = photo_masks(self.bank, self.frames) if photo else None
-        if masks is not None:  # frames sharing a viewpoint count once, as masks do (visibility._hull_masks)
-            first: dict = {}
-            for i, m in masks:
-                first.setdefault(self.scene.frames[i].view, (i, m))
-            masks = list(first.values())
         what = "the photos' non-background pixels" if photo else "the masks"
         if photo and masks is None:
             return "occupancy: no masks, no hull"
@@ -435,7 +430,7 @@ class Trainer:
         if mode == "bound":
             self.seen = seen & hull
         keep = ""
-        if c.hull_keep_frac > 0 and (c.hull_keep == "on" or (c.hull_keep == "auto" and self.stop_dark_room)):
+        if c.hull_keep_frac > 0 and (c.hull_keep == "on" or (c.hull_keep == "auto" and self.dark_room)):
             self.hull_in = (seen & hull).to(torch.uint8)
             span = "the whole run" if c.hull_keep_frac >= 1 else f"the first {c.hull_keep_frac:.0%} of the run"
             keep = f"; {'dark room: ' if c.hull_keep == 'auto' else ''}its cells stay occupied for {span} (hull_keep)"

@@ -87,19 +87,25 @@ def seen_fraction(mask: torch.Tensor) -> float:
     return float((mask & inside).sum()) / max(1, int(inside.sum()))
 
 
-def _hull_masks(scene, frames: list[int]) -> list[tuple[int, np.ndarray]] | None:
+def _hull_masks(scene, frames: list[int], given: dict[int, np.ndarray] | None = None
+                ) -> list[tuple[int, np.ndarray]] | None:
     """(frame, foreground [H, W] bool) per viewpoint with a non-empty mask (frames sharing a
-    ``view`` once: the first one's), or None when a view has no mask."""
+    ``view`` once: the first one's), or None when a view has no mask. ``given`` ({frame: foreground
+    [H, W] bool}) stands in for the scene's masks (the photos' own: :func:`fastneus.train.rays.photo_masks`)."""
     views: dict[int, int] = {}
     for i in frames:
         views.setdefault(scene.frames[i].view, i)
     out = []
     for i in views.values():
-        m = scene.mask(i)
-        if m is None:
+        if given is not None:
+            fg = given.get(i)
+        else:
+            m = scene.mask(i)
+            fg = None if m is None else m >= 0.5
+        if fg is None:
             return None
-        if (m >= 0.5).any():
-            out.append((i, m >= 0.5))
+        if fg.any():
+            out.append((i, fg))
     return out
 
 
@@ -209,7 +215,7 @@ HULL_TOLERANCE = 0.002  # share of a view's mask pixels the hull may leave uncov
 
 
 def consistent_hull(scene, frames: list[int], resolution: int, device, pads=HULL_PADS,
-                    tol: float = HULL_TOLERANCE, masks: list[tuple[int, np.ndarray]] | None = None
+                    tol: float = HULL_TOLERANCE, masks: dict[int, np.ndarray] | None = None
                     ) -> tuple[torch.Tensor | None, float, float]:
     """The tightest hull of :func:`hull_cells` (widened by each of ``pads`` px in turn) that covers
     every masked view's foreground (:func:`hull_uncovered` at most ``tol`` in every view).
@@ -222,12 +228,12 @@ def consistent_hull(scene, frames: list[int], resolution: int, device, pads=HULL
     widest does not.
 
     Args:
-        masks: (frame, foreground [H, W] bool) per viewpoint in place of the scene's masks (e.g. the
-            photos' non-background pixels without masks: :func:`fastneus.train.rays.photo_masks`).
+        masks: {frame: foreground [H, W] bool} in place of the scene's masks (e.g. the photos'
+            non-background pixels without masks: :func:`fastneus.train.rays.photo_masks`).
     Returns:
         (hull [R^3] bool or None, the extra pad used (px), the worst view's uncovered share at it).
     """
-    masks = _hull_masks(scene, frames) if masks is None else [(i, m) for i, m in masks if m.any()]
+    masks = _hull_masks(scene, frames, masks)
     if masks is None:
         return None, 0.0, 0.0
     world, half = _cell_centres(scene, int(resolution), torch.device(device), torch.float32)  # once for every width
