@@ -243,6 +243,22 @@ def _empty_result(R: int, device) -> tuple[torch.Tensor, ...]:
             torch.zeros(0, dtype=torch.int32, device=device))
 
 
+def _sample_buffers(total: int, device, out) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """t0, t1 [total] float32 and ray_index [total] int32: fresh, or the first ``total`` entries
+    of the buffers ``out(total)`` returns (checked: a wrong buffer would be written past its end)."""
+    bufs = None if out is None else out(total)
+    if bufs is None:
+        return (torch.empty(total, dtype=torch.float32, device=device),
+                torch.empty(total, dtype=torch.float32, device=device),
+                torch.empty(total, dtype=torch.int32, device=device))
+    for b, dt in zip(bufs, (torch.float32, torch.float32, torch.int32)):
+        if (b.dtype != dt or b.dim() != 1 or b.shape[0] < total or not b.is_contiguous()
+                or b.device != torch.device(device)):
+            raise ValueError(f"march out buffer: need a contiguous {dt} vector of >= {total} entries on "
+                             f"{device}, got {b.dtype} {tuple(b.shape)} on {b.device}")
+    return tuple(b[:total] for b in bufs)
+
+
 # ----------------------------------------------------------------------------- marching
 
 def ray_bounds(origins: torch.Tensor, dirs: torch.Tensor, bound: str = "sphere",
@@ -305,6 +321,7 @@ def march_rays(
     bound: str = "sphere",
     near_min: float = 0.0,
     stop: torch.Tensor | None = None,  # [res^3] uint8: a ray ends at the first such cell (None = none)
+    out=None,  # callable total -> (t0, t1, ray_index) buffers of >= total entries, or None
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
     """March rays through the occupancy grid and pack the samples in occupied cells (Warp).
 
@@ -327,10 +344,15 @@ def march_rays(
         bound: "sphere" (unit sphere) or "box" ([-1, 1]^3) clip of the rays.
         near_min: lower limit of t_near.
         stop: None or [res^3] uint8 cells that end a ray (:attr:`OccupancyGrid.stop`).
+        out: None, or a callable given the total sample count S (on the host, after the count
+            pass) that returns None or three contiguous buffers (float32, float32, int32, on the
+            rays' device) of at least S entries: the samples are written into their first S
+            entries and the rest is left as it was (a captured step's fixed buffers: no copy).
 
     Returns:
         offsets [R] int32 (exclusive cumsum of counts), counts [R] int32, t0 [S] float32,
-        t1 [S] float32, ray_index [S] int32; samples packed by ray, in order of t.
+        t1 [S] float32, ray_index [S] int32; samples packed by ray, in order of t (with ``out``:
+        views of its buffers' first S entries).
     """
     o, d, bits, jitter = _check_rays(origins, dirs, bits, resolution, jitter, bound, max_samples)
     stop, use_stop = _check_stop(stop, bits)
@@ -353,9 +375,7 @@ def march_rays(
     csum = torch.cumsum(counts, 0, dtype=torch.int32)
     offsets = csum - counts
     total = int(csum[-1].item())  # the one host sync: the output size must be known
-    t0 = torch.empty(total, dtype=torch.float32, device=dev)
-    t1 = torch.empty(total, dtype=torch.float32, device=dev)
-    ray_index = torch.empty(total, dtype=torch.int32, device=dev)
+    t0, t1, ray_index = _sample_buffers(total, dev, out)
     if total > 0:
         _warp.launch_chunked(_march_fill_kernel, [wo, wd, wj, wb, int(resolution), step, int(max_samples), box,
                                                   near_min, ws, use_stop, _warp.to_wp(offsets), _warp.to_wp(counts), 0],
@@ -375,6 +395,7 @@ def march_rays_torch(
     bound: str = "sphere",
     near_min: float = 0.0,
     stop: torch.Tensor | None = None,  # [res^3] uint8: a ray ends at the first such cell (None = none)
+    out=None,  # callable total -> (t0, t1, ray_index) buffers of >= total entries, or None
     chunk_elems: int = 1 << 23,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
     """Pure-torch twin of :func:`march_rays` (same arguments, identical outputs).
@@ -427,7 +448,13 @@ def march_rays_torch(
         t1s.append(t1[emit])
         rids.append(torch.arange(a, b, device=dev, dtype=torch.int32)[:, None].expand_as(emit)[emit])
     offsets = torch.cumsum(counts, 0, dtype=torch.int32) - counts
-    return offsets, counts, torch.cat(t0s), torch.cat(t1s), torch.cat(rids)
+    t0, t1, rid = torch.cat(t0s), torch.cat(t1s), torch.cat(rids)
+    if out is None:
+        return offsets, counts, t0, t1, rid
+    bufs = _sample_buffers(int(t0.shape[0]), dev, out)
+    for b, v in zip(bufs, (t0, t1, rid)):
+        b.copy_(v)
+    return (offsets, counts, *bufs)
 
 
 # ----------------------------------------------------------------------------- occupancy alpha

@@ -141,13 +141,90 @@ def device_gaps(ops: list[tuple[float, float, str]], min_gap_us: float = 0.0, to
                                        for (a, b), (c, ms) in top]}
 
 
-def timeline(tr, steps: int, top_n: int = 12) -> dict:
+def gaps_by_scope(events: list[dict], min_gap_us: float = 5.0, top_n: int = 12) -> list[dict]:
+    """The device's idle gaps (over ``min_gap_us``) by the host part that launched the op ending
+    each gap, from a Chrome trace's events (torch's profiler: device ops of category ``kernel``,
+    ``gpu_memcpy``, ``gpu_memset``, linked by ``args.correlation`` to their launch calls
+    (``cuda_runtime`` / ``cuda_driver``), which lie inside ``user_annotation`` ranges on the
+    launching thread (:func:`_scoped`'s names; innermost wins).
+
+    Returns:
+        [{"scope", "count", "ms", "late_ms"}] by total gap, largest first; ``late_ms`` is the part
+        of those gaps after which the op was still not launched (the device waited for the host).
+    """
+    dev = sorted((e for e in events if e.get("cat") in ("kernel", "gpu_memcpy", "gpu_memset") and "dur" in e),
+                 key=lambda e: e["ts"])
+    launch = {e["args"]["correlation"]: e for e in events
+              if e.get("cat") in ("cuda_runtime", "cuda_driver") and "correlation" in e.get("args", {})}
+    ann = [e for e in events if e.get("cat") == "user_annotation" and "dur" in e]
+    out: dict[str, list[float]] = {}
+    last_end = None
+    for e in dev:
+        if last_end is not None and e["ts"] - last_end > min_gap_us:
+            gap = e["ts"] - last_end
+            lc = launch.get(e.get("args", {}).get("correlation"))
+            scope, late = "(launch not found)", 0.0
+            if lc is not None:
+                inside = [a for a in ann if a.get("tid") == lc.get("tid") and a["ts"] <= lc["ts"] <= a["ts"] + a["dur"]]
+                scope = min(inside, key=lambda a: a["dur"])["name"] if inside else "(no scope)"
+                late = min(gap, max(0.0, lc["ts"] + lc.get("dur", 0.0) - last_end))
+            acc = out.setdefault(scope, [0, 0.0, 0.0])
+            acc[0] += 1
+            acc[1] += gap
+            acc[2] += late
+        end = e["ts"] + e["dur"]
+        last_end = end if last_end is None else max(last_end, end)
+    rows = sorted(out.items(), key=lambda kv: -kv[1][1])[:top_n]
+    return [{"scope": k, "count": c, "ms": ms / 1000.0, "late_ms": late / 1000.0} for k, (c, ms, late) in rows]
+
+
+def _scoped(tr) -> list:
+    """Name the host parts of a training step in the profile (``record_function`` around the
+    trainer's schedule, ray draw, march, graph step, input copies and Adam's host half), for a
+    trace that says which part the device waits on. Returns the undo list for :func:`_unscope`."""
+    from torch.profiler import record_function
+
+    from fastneus.train import trainer as trainer_mod
+
+    def wrap(obj, name):
+        fn = getattr(obj, name)
+        own = isinstance(obj, type) or not hasattr(obj, "__dict__") or name in vars(obj)
+
+        def scoped(*a, **k):
+            with record_function(f"fastneus.{name}"):
+                return fn(*a, **k)
+        setattr(obj, name, scoped)
+        return obj, name, fn if own else None
+
+    undo = [wrap(trainer_mod, "march_samples")]
+    for obj, names in ((tr, ("update_grid", "_set_lr", "fill_step_scalars", "compute")), (tr.bank, ("sample",)),
+                       (tr.rig, ("rays",)), (tr.field, ("set_progress",)), (tr.opt, ("prepare_device_step",))):
+        undo += [wrap(obj, n) for n in names]
+    if tr.graphs is not None:
+        undo.append(wrap(tr.graphs, "step"))
+        from fastneus.train import graphstep
+        undo += [wrap(graphstep._Entry, "load")]
+    return undo
+
+
+def _unscope(undo: list) -> None:
+    for obj, name, fn in reversed(undo):
+        if fn is None:  # a bound method: drop the instance's wrapper
+            delattr(obj, name)
+        else:
+            setattr(obj, name, fn)
+
+
+def timeline(tr, steps: int, top_n: int = 12, trace: str | None = None) -> dict:
     """``steps`` training steps back to back under the profiler (no synchronize between them);
-    the device's gaps (:func:`device_gaps`, gaps over 5 us listed), per step."""
+    the device's gaps (:func:`device_gaps`, gaps over 5 us listed), per step. ``trace``: also
+    write the profile as a Chrome trace there (host ops, launches and device ops with the links
+    between them: which host call each gap waits for)."""
     from torch.profiler import ProfilerActivity, profile
 
     torch.cuda.synchronize()
     samples = 0.0
+    undo = _scoped(tr) if trace else []
     with profile(activities=[ProfilerActivity.CPU, ProfilerActivity.CUDA]) as prof:
         t = time.perf_counter()
         for _ in range(steps):
@@ -155,13 +232,22 @@ def timeline(tr, steps: int, top_n: int = 12) -> dict:
             samples += float(st.get("samples", 0)) if isinstance(st, dict) else 0.0
         torch.cuda.synchronize()
         wall = (time.perf_counter() - t) * 1000
+    _unscope(undo)
+    if trace:
+        Path(trace).parent.mkdir(parents=True, exist_ok=True)
+        prof.export_chrome_trace(trace)
+        import json
+
+        by_scope = gaps_by_scope(json.loads(Path(trace).read_text())["traceEvents"], 5.0, top_n)
     ops = [(e.time_range.start, e.time_range.end, e.name) for e in prof.events()
            if getattr(e, "device_type", None) is not None and e.device_type.name == "CUDA"]
     g = device_gaps(ops, min_gap_us=5.0, top_n=top_n)
     per = {k: g[k] / steps for k in ("span_ms", "busy_ms", "idle_ms", "small_gaps_ms")}
     return {"steps": steps, "wall_ms": wall / steps, "samples": samples / steps, **per,
             "gaps_per_step": g["n_gaps"] / steps,
-            "gaps": [{**r, "count": r["count"] / steps, "ms": r["ms"] / steps} for r in g["gaps"]]}
+            "gaps": [{**r, "count": r["count"] / steps, "ms": r["ms"] / steps} for r in g["gaps"]],
+            **({"gaps_by_scope": [{**r, "count": r["count"] / steps, "ms": r["ms"] / steps,
+                                   "late_ms": r["late_ms"] / steps} for r in by_scope]} if trace else {})}
 
 
 def profile_steps(tr, steps: int, top_n: int = 12) -> dict:
@@ -243,6 +329,8 @@ def main() -> None:
                     help="CUDA: also run N steps under torch's sync debug mode and list where the host waits")
     ap.add_argument("--timeline", type=int, default=0, metavar="K",
                     help="CUDA: also profile K steps back to back and list the device's idle gaps")
+    ap.add_argument("--trace", default=None, metavar="FILE",
+                    help="with --timeline: write those steps' profile as a Chrome trace (chrome://tracing, Perfetto)")
     ap.add_argument("overrides", nargs="*", help="key=value config overrides")
     args = ap.parse_intermixed_args()  # key=value overrides may follow the options
 
@@ -264,7 +352,7 @@ def main() -> None:
     if args.sync_sites > 0 and args.device.startswith("cuda"):
         res["sync_sites"] = sync_sites(tr, args.sync_sites)
     if args.timeline > 0 and args.device.startswith("cuda"):
-        res["timeline"] = timeline(tr, args.timeline, args.top)
+        res["timeline"] = timeline(tr, args.timeline, args.top, args.trace)
     cmd = command_line("step_profile.py")
     head = (f"{provenance_line(args.device, cmd)} Medians per step ({preset} preset, {tr.n_rays} rays per step)."
             "\n\n")
@@ -285,6 +373,11 @@ def main() -> None:
                f"{tl['samples']:.0f} samples. The largest idle gaps, by the operations either side:\n\n")
         md += md_table([{k: (round(v, 3) if isinstance(v, float) else v) for k, v in r.items()} for r in tl["gaps"]],
                        ["after", "before", "count", "ms"])
+        if tl.get("gaps_by_scope"):
+            md += ("\n\nThe same gaps by the host part that launched the op ending each (late_ms: the op was "
+                   "launched only after the device had gone idle):\n\n")
+            md += md_table([{k: (round(v, 3) if isinstance(v, float) else v) for k, v in r.items()}
+                            for r in tl["gaps_by_scope"]], ["scope", "count", "ms", "late_ms"])
     write_results(out, "step-profile", {"args": vars(args), "preset": preset, "rays": tr.n_rays, **res}, md,
                   args.device, cmd)
     print(md)

@@ -104,18 +104,39 @@ def _close(a, b, what):
             torch.testing.assert_close(x, y, rtol=1e-3, atol=1e-4, msg=what)
 
 
-@pytest.mark.parametrize("extra", [[], ["curvature_weight=0.001"], ["hull=loss", "init_radius=0.95"]])
+def _in_place(e, smp, gen):
+    """``smp`` as the march leaves it when it writes into ``e``'s buffers (``march_out``): its
+    samples first, then stale but finite samples of earlier steps in the padding."""
+    s, n = smp["n_samples"], smp["offsets"].shape[0]
+    t0, t1, ri = e.buffers()
+    t0.copy_(torch.rand(t0.shape, generator=gen) * 1.5)
+    t1.copy_(t0 + 0.01)
+    ri.copy_(torch.randint(0, n, ri.shape, generator=gen, dtype=torch.int32))
+    for k, buf in zip(("t0", "t1", "ray_index"), (t0, t1, ri)):
+        buf[:s].copy_(smp[k])
+    return {**smp, "t0": t0[:s], "t1": t1[:s], "ray_index": ri[:s]}
+
+
+@pytest.mark.parametrize("extra", [[], ["curvature_weight=0.001"], ["hull=loss", "init_radius=0.95"], "in-place"])
 def test_padded_device_schedule_step_matches_the_eager_step(small_scene, tmp_path, extra):
-    a, b = _pair(small_scene, tmp_path, "cpu", extra)
+    """The padded step against the eager one; ``in-place``: the samples written into the
+    entry's buffers with earlier steps' samples left in the padding (not copied, not zeroed)."""
+    in_place = extra == "in-place"
+    a, b = _pair(small_scene, tmp_path, "cpu", [] if in_place else extra)
     a.opt._scal = torch.zeros(len(a.opt.param_groups), 2)
+    gen = torch.Generator().manual_seed(5)
     for p in (0.1, 0.2, 0.5):  # coarse-to-fine still opening levels at the first two
         batch, xr, smp = _inputs(b, p)
         a.field.set_progress(p)
         a._set_lr(p)
         assert a.field.active_levels == b.field.active_levels
         rb = b.compute(batch, xr, smp, p)
-        e = _Entry(batch, xr, smp, sample_bucket(smp["n_samples"]) + 37)  # padding on purpose
-        e.load(batch, xr, smp)
+        e = _Entry(batch, xr, sample_bucket(smp["n_samples"]) + 37)  # padding on purpose
+        e.load(batch, xr, _in_place(e, smp, gen) if in_place else smp)
+        if in_place:  # nothing copied over the stale padding
+            assert float(e.smp["t0"][smp["n_samples"]:].abs().sum()) > 0
+        e.mark_live()
+        assert int(e.valid[:e.capacity].sum()) == smp["n_samples"] and bool(e.valid[e.capacity:].all())
         a.opt.prepare_device_step()
         ra = a.compute(e.batch, e.xr, e.smp, p, valid=e.valid, device_adam=True)
         torch.testing.assert_close(ra["loss"], rb["loss"], rtol=1e-5, atol=1e-7)

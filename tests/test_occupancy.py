@@ -47,6 +47,36 @@ def _assert_same(a, b):
 
 
 @pytest.mark.parametrize("device", DEVICES)
+def test_march_writes_into_given_buffers(device):
+    """``out``: the samples go into the first S entries of the caller's buffers (a captured
+    step's fixed ones), the rest is left as it was; a buffer too short or of the wrong type is
+    refused before anything is written; both backends alike."""
+    gen = torch.Generator().manual_seed(int(torch.randint(0, 2**31 - 1, (1,))))
+    res = 16
+    bits = (torch.rand(res**3, generator=gen) < 0.4).to(torch.uint8).to(device)
+    o, d, jitter = _random_rays(400, device, gen)
+    args = (o, d, bits, res, 0.02, 32, jitter, "sphere", 0.0)
+    for fn in (occ.march_rays, occ.march_rays_torch):
+        ref = fn(*args)
+        s = ref[2].shape[0]
+        assert s > 100
+        bufs = (torch.full((s + 50,), -7.0, device=device), torch.full((s + 50,), -7.0, device=device),
+                torch.full((s + 50,), -7, dtype=torch.int32, device=device))
+        seen = []
+        got = fn(*args, out=lambda total: seen.append(total) or bufs)
+        assert seen == [s]
+        _assert_same(got, ref)
+        for g, b in zip(got[2:], bufs):
+            assert g.data_ptr() == b.data_ptr() and g.shape[0] == s
+            assert bool((b[s:] == -7).all())  # the padding untouched
+        _assert_same(fn(*args, out=lambda total: None), ref)  # None: fresh tensors
+        for bad in ((bufs[0][:s - 1], bufs[1], bufs[2]), (bufs[0], bufs[1], bufs[2].float()),
+                    (bufs[0], bufs[1][::2], bufs[2])):
+            with pytest.raises(ValueError, match="march out buffer"):
+                fn(*args, out=lambda total, bad=bad: bad)
+
+
+@pytest.mark.parametrize("device", DEVICES)
 @pytest.mark.parametrize("bound", ["sphere", "box"])
 def test_march_matches_twin(device, bound):
     gen = torch.Generator().manual_seed(int(torch.randint(0, 2**31 - 1, (1,))))

@@ -95,3 +95,53 @@ def test_device_gaps_sum_idle_per_neighbour_pair():
     by = {(r["after"], r["before"]): (r["count"], r["ms"]) for r in g["gaps"]}
     assert by == {("b", "c"): (2, 0.2), ("a", "b"): (1, 0.1)}
     assert device_gaps([])["span_ms"] == 0.0
+
+
+def test_scoped_parts_show_in_the_profile_and_are_undone(tmp_path):
+    """--trace names the host parts of a step in the profile; afterwards the trainer is as it was
+    (no wrapper left on the instance, the module's march_samples restored)."""
+    from benchutil import make_trainer
+    from step_profile import _scoped, _unscope
+    from torch.profiler import ProfilerActivity, profile
+
+    from fastneus.data import Scene
+    from fastneus.synth.render import synthesize
+    from fastneus.train import trainer as trainer_mod
+
+    scene = tmp_path / "s"
+    synthesize(scene, shape="sphere", views=2, size=(24, 24), seed=1, device="cpu", progress=False,
+               contact_sheet=False)
+    tr = make_trainer(Scene.load(scene), "cpu", ["threads=1"], tmp_path / "run", "cpu-quick")
+    march, sample = trainer_mod.march_samples, tr.bank.sample
+    undo = _scoped(tr)
+    with profile(activities=[ProfilerActivity.CPU]) as prof:
+        tr.train_step()
+    _unscope(undo)
+    names = {e.name for e in prof.events()}
+    assert {"fastneus.march_samples", "fastneus.sample", "fastneus.compute", "fastneus.update_grid"} <= names
+    assert trainer_mod.march_samples is march and "sample" not in vars(tr.bank) and "compute" not in vars(tr)
+    assert tr.bank.sample == sample
+    tr.train_step()
+
+
+def test_gaps_by_scope_names_the_launching_part():
+    """Each gap goes to the innermost annotated range around the launch of the op ending it;
+    late_ms counts only the part of the gap after which the op was still not launched."""
+    from step_profile import gaps_by_scope
+
+    ev = [{"cat": "user_annotation", "name": "fastneus.step", "ts": 0, "dur": 1000, "tid": 1},
+          {"cat": "user_annotation", "name": "fastneus.load", "ts": 100, "dur": 50, "tid": 1},
+          {"cat": "kernel", "name": "k1", "ts": 0, "dur": 10, "args": {"correlation": 1}},
+          {"cat": "cuda_runtime", "name": "cudaLaunchKernel", "ts": 0, "dur": 2, "tid": 1, "args": {"correlation": 1}},
+          # launched inside load at 120 (+5 us of launch): the device idled from 10 to 130
+          {"cat": "cuda_runtime", "name": "cudaMemcpyAsync", "ts": 120, "dur": 5, "tid": 1, "args": {"correlation": 2}},
+          {"cat": "gpu_memcpy", "name": "Memcpy DtoD", "ts": 130, "dur": 10, "args": {"correlation": 2}},
+          # launched early (at 50) but started late: a gap the host did not cause
+          {"cat": "cuda_runtime", "name": "cudaLaunchKernel", "ts": 50, "dur": 2, "tid": 1, "args": {"correlation": 3}},
+          {"cat": "kernel", "name": "k3", "ts": 200, "dur": 10, "args": {"correlation": 3}},
+          {"cat": "kernel", "name": "k4", "ts": 212, "dur": 10, "args": {"correlation": 9}}]  # 2 us: not a gap
+    rows = {r["scope"]: r for r in gaps_by_scope(ev, 5.0)}
+    assert set(rows) == {"fastneus.load", "fastneus.step"}
+    assert rows["fastneus.load"]["count"] == 1 and abs(rows["fastneus.load"]["ms"] - 0.120) < 1e-9
+    assert abs(rows["fastneus.load"]["late_ms"] - 0.115) < 1e-9
+    assert abs(rows["fastneus.step"]["ms"] - 0.060) < 1e-9 and rows["fastneus.step"]["late_ms"] == 0.0

@@ -39,7 +39,7 @@ def pattern_pass_split(cfg, device) -> bool:
 
 
 def march_samples(bits: torch.Tensor, grid_res: int, origins: torch.Tensor, dirs: torch.Tensor, cfg, *,
-                  jitter: bool = True, stop: torch.Tensor | None = None) -> dict:
+                  jitter: bool = True, stop: torch.Tensor | None = None, out=None) -> dict:
     """Samples of a batch of rays through the occupied cells (the step's one host sync: the
     packed sample count sizes the buffers).
 
@@ -49,6 +49,8 @@ def march_samples(bits: torch.Tensor, grid_res: int, origins: torch.Tensor, dirs
         cfg: run config (march step, sample cap, bound, backend).
         jitter: random start offset per ray (training) or 0 (rendering).
         stop: None or [R^3] uint8 cells that end a ray (the grid's cells deep inside the surface).
+        out: None, or a callable given the sample count that returns buffers to write the samples
+            into (``march_rays``'s ``out``: a captured step's fixed buffers).
     Returns:
         dict: offsets [B] int32 (first sample of each ray), counts [B] int32, t0, t1 [S] float32
         (sample interval along the ray), ray_index [S] int32, n_samples S (int).
@@ -58,7 +60,8 @@ def march_samples(bits: torch.Tensor, grid_res: int, origins: torch.Tensor, dirs
     march = get_op("march_rays", cfg.run.backend)
     jit = torch.rand(n, device=device) if jitter else torch.zeros(n, device=device)
     offsets, counts, t0, t1, ray_index = march(origins, dirs, bits, grid_res, cfg.rays.march_step,
-                                               cfg.rays.max_samples_per_ray, jit, cfg.rays.bound, 0.0, stop)
+                                               cfg.rays.max_samples_per_ray, jit, cfg.rays.bound, 0.0, stop,
+                                               out=out)
     return {"offsets": offsets, "counts": counts, "t0": t0, "t1": t1, "ray_index": ray_index,
             "n_samples": int(t0.shape[0])}
 

@@ -67,33 +67,52 @@ class _Entry:
     live samples, then the uniform points, which are always live).
     """
 
-    def __init__(self, batch: dict, xr: torch.Tensor, smp: dict, capacity: int):
+    def __init__(self, batch: dict, xr: torch.Tensor, capacity: int):
         dev = xr.device
+        n = batch["origins"].shape[0]
         self.batch = {k: v.clone() for k, v in batch.items()}
         self.xr = xr.clone()
         self.capacity = capacity
-        self.smp = {"offsets": smp["offsets"].clone(), "counts": smp["counts"].clone(),
-                    "t0": torch.zeros(capacity, dtype=smp["t0"].dtype, device=dev),
-                    "t1": torch.zeros(capacity, dtype=smp["t1"].dtype, device=dev),
-                    "ray_index": torch.zeros(capacity, dtype=smp["ray_index"].dtype, device=dev),
+        self.smp = {"offsets": torch.zeros(n, dtype=torch.int32, device=dev),
+                    "counts": torch.zeros(n, dtype=torch.int32, device=dev),
+                    "t0": torch.zeros(capacity, dtype=torch.float32, device=dev),
+                    "t1": torch.zeros(capacity, dtype=torch.float32, device=dev),
+                    "ray_index": torch.zeros(capacity, dtype=torch.int32, device=dev),
                     "n_samples": capacity}
         self.valid = torch.ones(capacity + xr.shape[0], device=dev)
+        self._index = torch.arange(capacity, dtype=torch.int32, device=dev)
+        self._live = torch.zeros(capacity, dtype=torch.bool, device=dev)
         self.graph: torch.cuda.CUDAGraph | None = None
         self.rec: dict | None = None
 
+    def buffers(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """t0, t1, ray_index [C]: where the march writes this step's samples (``march_samples(out=)``)."""
+        return self.smp["t0"], self.smp["t1"], self.smp["ray_index"]
+
     def load(self, batch: dict, xr: torch.Tensor, smp: dict) -> None:
-        """Copy this step's inputs in (device-to-device copies and fills: no host sync)."""
+        """Copy this step's inputs in (device-to-device copies: no host sync). Samples the march
+        wrote into :meth:`buffers` stay where they are; others are copied and the padding zeroed.
+        The padding past the live samples may hold earlier steps' samples: they are finite,
+        belong to no ray's span and are out of ``valid``, so they add nothing to the loss or
+        the gradients."""
         for k, v in batch.items():
             self.batch[k].copy_(v)
         self.xr.copy_(xr)
-        s = smp["n_samples"]
         for k in ("offsets", "counts"):
             self.smp[k].copy_(smp[k])
-        for k in ("t0", "t1", "ray_index"):
-            self.smp[k][:s].copy_(smp[k])
-            self.smp[k][s:].zero_()
-        self.valid[:s].fill_(1.0)
-        self.valid[s:self.capacity].fill_(0.0)
+        if smp["t0"].data_ptr() != self.smp["t0"].data_ptr():
+            s = smp["n_samples"]
+            for k in ("t0", "t1", "ray_index"):
+                self.smp[k][:s].copy_(smp[k])
+                self.smp[k][s:].zero_()
+
+    def mark_live(self) -> None:
+        """``valid[:C]``: 1 before the last ray's end (``offsets[-1] + counts[-1]``, the live
+        sample count), 0 on the padding. Read from the loaded offsets on the device, so a
+        captured graph does it when it replays (no fill per step outside it)."""
+        total = self.smp["offsets"][-1:] + self.smp["counts"][-1:]
+        torch.lt(self._index, total, out=self._live)
+        self.valid[:self.capacity].copy_(self._live)
 
 
 class StepGraphs:
@@ -105,6 +124,7 @@ class StepGraphs:
     """
 
     _pending: tuple | None = None  # the last step's key when it ran eagerly (not captured)
+    _planned: tuple | None = None  # (key, entry, sample count) decided in this step's march (march_out)
 
     def __init__(self, trainer, console=None):
         self.device = trainer.device
@@ -153,13 +173,45 @@ class StepGraphs:
         fits = [k[1] for k in keys if k[0] == rest[0] and s <= k[1] <= 1.2 * s and k[2:] == rest[2:]]
         return min(fits) if fits else sample_bucket(int(s * 1.05) + 1)
 
+    def march_out(self, tr, batch: dict, xr: torch.Tensor, p: float):
+        """The ``out`` argument of this step's :func:`~fastneus.field.renderer.march_samples`:
+        given the sample count (read after the march's count pass), the step's key is decided
+        and a step that replays or records a graph gets its entry's fixed sample buffers to
+        write into, so nothing is copied into them between the count read and the replay (the
+        device idles while the host queues that work)."""
+
+        def take(total: int):
+            if total <= 0:
+                return None
+            key, e = self._plan(tr, batch, xr, total, p)
+            self._planned = (key, e, total)
+            return None if e is None else e.buffers()
+
+        return take
+
+    def _plan(self, tr, batch: dict, xr: torch.Tensor, s: int, p: float) -> tuple[tuple, _Entry | None]:
+        """This step's key and its entry (created for a key seen on the step before), or None:
+        a key not seen on the step before runs one eager step."""
+        capacity = self._capacity(tr, batch, s, p)
+        key = self._key(tr, batch, capacity, p)
+        e = self.cache.get(key)
+        if e is None and key == self._pending:
+            self._make_room()
+            e = _Entry(batch, xr, capacity)
+            self.cache[key] = e
+            while len(self.cache) > MAX_GRAPHS:
+                self.cache.popitem(last=False)
+        return key, e
+
     def step(self, tr, batch: dict, xr: torch.Tensor, smp: dict, p: float) -> dict | None:
         """Run this step's compute part: replay its graph, or run it eagerly and capture it."""
         tr.fill_step_scalars(p)  # read at replay (fills: no host sync)
-        capacity = self._capacity(tr, batch, smp["n_samples"], p)
-        key = self._key(tr, batch, capacity, p)
-        e = self.cache.get(key)
-        if e is None and key != self._pending:
+        planned, self._planned = self._planned, None
+        if planned is not None and planned[2] == smp["n_samples"]:
+            key, e = planned[:2]
+        else:  # the march was not given march_out
+            key, e = self._plan(tr, batch, xr, smp["n_samples"], p)
+        if e is None:
             # a key not seen on the step before: one eager step, captured only if the next step
             # repeats it. After the occupancy grid's first update the adaptive ray count climbs
             # through ~8 buckets in as many steps, and each was captured (30-50 ms of host time)
@@ -167,14 +219,9 @@ class StepGraphs:
             self._pending = key
             self.eager += 1
             return tr.compute(batch, xr, smp, p)
-        tr.opt.prepare_device_step()
-        if e is None:
+        if key == self._pending:
             self._pending = None
-            self._make_room()
-            e = _Entry(batch, xr, smp, capacity)
-            self.cache[key] = e
-            while len(self.cache) > MAX_GRAPHS:
-                self.cache.popitem(last=False)
+        tr.opt.prepare_device_step()
         self.cache.move_to_end(key)
         e.load(batch, xr, smp)
         if e.graph is not None:
@@ -187,17 +234,19 @@ class StepGraphs:
         cur = torch.cuda.current_stream(self.device)
         self.side.wait_stream(cur)
         with torch.cuda.stream(self.side):
+            e.mark_live()
             rec = tr.compute(e.batch, e.xr, e.smp, p, valid=e.valid, device_adam=True)
         cur.wait_stream(self.side)
         try:
             g = torch.cuda.CUDAGraph()
             tr.opt.zero_grad(set_to_none=True)  # the graph allocates its own gradients
             with torch.cuda.graph(g, stream=self.side):
+                e.mark_live()
                 out = tr.compute(e.batch, e.xr, e.smp, p, valid=e.valid, device_adam=True)
             cur.wait_stream(self.side)
             e.graph, e.rec = g, out
             self.captured += 1
-            self.captures.append({"step": tr.step, "rays": key[0], "capacity": capacity,
+            self.captures.append({"step": tr.step, "rays": key[0], "capacity": e.capacity,
                                   "seconds": round(time.perf_counter() - t0, 4)})
         except Exception as err:  # noqa: BLE001 - any capture failure falls back to eager steps
             self.enabled = False

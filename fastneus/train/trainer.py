@@ -633,8 +633,9 @@ class Trainer:
         # a few uniform points for the eikonal term so the far field stays an SDF; they go through
         # the field in the same call as the samples (one hash + MLP pass instead of two)
         xr = torch.rand(max(256, n // 4), 3, device=self.device, generator=self.gen) * 2 - 1
+        # a replayed step's samples go straight into its graph's fixed buffers (graphs.march_out)
         smp = march_samples(self.grid.bits, self.grid.resolution, batch["origins"], batch["dirs"], c, jitter=True,
-                            stop=self.grid.stop)
+                            stop=self.grid.stop, out=None if graphs is None else graphs.march_out(self, batch, xr, p))
         s = smp["n_samples"]
         # adapt the ray count to the sample budget (s is known on the host from marching)
         mean_spr = max(1.0, s / n)
