@@ -239,8 +239,10 @@ def timeline(tr, steps: int, top_n: int = 12, trace: str | None = None) -> dict:
         import json
 
         by_scope = gaps_by_scope(json.loads(Path(trace).read_text())["traceEvents"], 5.0, top_n)
+    # the named host parts (trace) also show on the device as ranges spanning their kernels: not ops
     ops = [(e.time_range.start, e.time_range.end, e.name) for e in prof.events()
-           if getattr(e, "device_type", None) is not None and e.device_type.name == "CUDA"]
+           if getattr(e, "device_type", None) is not None and e.device_type.name == "CUDA"
+           and not e.name.startswith("fastneus.")]
     g = device_gaps(ops, min_gap_us=5.0, top_n=top_n)
     per = {k: g[k] / steps for k in ("span_ms", "busy_ms", "idle_ms", "small_gaps_ms")}
     return {"steps": steps, "wall_ms": wall / steps, "samples": samples / steps, **per,

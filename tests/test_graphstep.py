@@ -81,6 +81,8 @@ def _inputs(tr, p: float):
     n = ray_bucket(tr.n_rays)
     batch = tr.rig.rays(tr.bank.sample(n, tr.gen, bright_fraction=c.rays.bright_fraction))
     xr = torch.rand(max(256, n // 4), 3, device=tr.device, generator=tr.gen) * 2 - 1
+    if tr.device.type == "cuda":  # the march's jitter comes from the default CUDA generator
+        tr.rng_before_march = torch.cuda.get_rng_state(tr.device)
     return batch, xr, march_samples(tr.grid.bits, tr.grid.resolution, batch["origins"], batch["dirs"], c)
 
 
@@ -169,16 +171,50 @@ def test_device_schedule_gives_the_same_field_and_table_gradients(small_scene, t
             assert float(T[L0:].abs().max()) == 0.0
 
 
+def test_shared_inputs_are_fixed_per_layout_and_not_copied_again():
+    """StepGraphs.inputs: one set of fixed buffers per batch layout, refilled each step (before
+    the march); an entry made from them keeps them (no clone) and its load copies nothing."""
+    from fastneus.train.graphstep import StepGraphs
+
+    g = object.__new__(StepGraphs)
+    g._inputs, g._shared = {}, set()
+    gen = torch.Generator().manual_seed(3)
+
+    def batch(n):
+        return {"origins": torch.rand(n, 3, generator=gen), "dirs": torch.rand(n, 3, generator=gen),
+                "rgb": torch.rand(n, 3, generator=gen)}
+
+    b1, x1 = g.inputs(batch(64), torch.rand(256, 3, generator=gen))
+    src, xs = batch(64), torch.rand(256, 3, generator=gen)
+    b2, x2 = g.inputs(src, xs)
+    assert all(b1[k].data_ptr() == b2[k].data_ptr() for k in b1) and x1.data_ptr() == x2.data_ptr()
+    assert all(torch.equal(b2[k], src[k]) for k in src) and torch.equal(x2, xs)
+    b3, _ = g.inputs(batch(72), torch.rand(256, 3, generator=gen))  # another ray count: its own set
+    assert b3["origins"].data_ptr() != b1["origins"].data_ptr() and len(g._inputs) == 2
+    smp = march_samples(torch.ones(8 ** 3, dtype=torch.uint8), 8, b2["origins"] * 0.2,
+                        torch.nn.functional.normalize(b2["dirs"] - 0.5, dim=-1), load_config("cpu-quick"))
+    e = _Entry(b2, x2, sample_bucket(smp["n_samples"]), shared=b2["origins"].data_ptr() in g._shared)
+    assert e.batch["rgb"].data_ptr() == b2["rgb"].data_ptr() and e.xr.data_ptr() == x2.data_ptr()
+    e.load(b2, x2, smp)
+    assert torch.equal(e.batch["rgb"], src["rgb"])
+    own = _Entry(batch(64), x1, 4096)  # not shared: its own copies
+    assert own.xr.data_ptr() != x1.data_ptr()
+
+
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="CUDA graphs need a CUDA device")
-@pytest.mark.parametrize("extra", [[], ["hull=bound"], ["mask_start=on", "mask_weight_start=0.8", "mask_start_frac=0.3"]])
+@pytest.mark.parametrize("extra", [[], ["hull=bound"], ["mask_start=on", "mask_weight_start=0.8", "mask_start_frac=0.3"],
+                                   "train-step path"])
 def test_cuda_replayed_graph_matches_the_eager_step(tmp_path, extra):
     """Graph steps (first: eager on the side stream + capture; then replays) against eager
     steps on the same inputs: the same loss and parameters after every step. The scene is
     rendered on the GPU (no small_scene: a GPU machine may have no CPU compiler for Warp).
-    With a falling mask weight the replayed graph reads each step's weight from the device."""
+    With a falling mask weight the replayed graph reads each step's weight from the device.
+    ``train-step path``: as Trainer.train_step feeds it: the inputs in the shared fixed buffers
+    before the march, and the march writing into the graph's sample buffers (march_out)."""
     from fastneus.train.graphstep import StepGraphs
 
-    a, b = _pair(scene_on(None, tmp_path, "cuda"), tmp_path, "cuda", extra)
+    path = extra == "train-step path"
+    a, b = _pair(scene_on(None, tmp_path, "cuda"), tmp_path, "cuda", [] if path else extra)
     a.field._dev_sched = False  # StepGraphs switches it on
     graphs = StepGraphs(a)
     # coarse-to-fine still opening levels (the kernels read the count at replay), then over; the
@@ -189,6 +225,13 @@ def test_cuda_replayed_graph_matches_the_eager_step(tmp_path, extra):
         a.field.set_progress(p)
         a._set_lr(p)
         rb = b.compute(batch, xr, smp, p)
+        if path:  # the same rays, the same march jitter, through the train-step route
+            batch, xr = graphs.inputs(batch, xr)
+            torch.cuda.set_rng_state(b.rng_before_march, b.device)
+            smp2 = march_samples(a.grid.bits, a.grid.resolution, batch["origins"], batch["dirs"], a.cfg,
+                                 out=graphs.march_out(a, batch, xr, p))
+            assert smp2["n_samples"] == smp["n_samples"] and torch.equal(smp2["t0"], smp["t0"])
+            smp = smp2
         ra = graphs.step(a, batch, xr, smp, p)
         torch.testing.assert_close(ra["loss"], rb["loss"], rtol=1e-4, atol=1e-6)
         _close(a, b, f"step {i}")

@@ -164,10 +164,18 @@ class Adam:
             vals += [-g["lr"] / (1 - b1 ** t), 1.0 / math.sqrt(1 - b2 ** t)]
         if dev.type == "cuda":
             # one copy from page-locked memory instead of a fill per value: this runs between the
-            # march's count read and the replay, while the device waits for the host's launches.
-            # The caching host allocator keeps the block until the copy has run (no sync).
-            host = torch.tensor(vals, dtype=self._scal.dtype).pin_memory()
-            self._scal.view(-1).copy_(host, non_blocking=True)
+            # march's count read and the replay, while the device waits for the host's launches
+            # (10 fills: 0.28 ms of idle device per step on an H200; a fresh pinned tensor per
+            # step: 0.15 ms). Two pinned buffers in turn, each reused once its last copy has run.
+            if getattr(self, "_pinned", None) is None or self._pinned[0].numel() != len(vals):
+                self._pinned = [torch.empty(len(vals), dtype=self._scal.dtype, pin_memory=True) for _ in range(2)]
+                self._copied = [torch.cuda.Event(), torch.cuda.Event()]  # not recorded yet: no wait
+                self._turn = 0
+            i = self._turn = 1 - self._turn
+            self._copied[i].synchronize()  # its copy of two steps back: long done (a sync only in theory)
+            self._pinned[i].copy_(torch.tensor(vals, dtype=self._scal.dtype))
+            self._scal.view(-1).copy_(self._pinned[i], non_blocking=True)
+            self._copied[i].record()
         else:
             self._scal.view(-1).copy_(torch.tensor(vals, dtype=self._scal.dtype))
 

@@ -633,6 +633,8 @@ class Trainer:
         # a few uniform points for the eikonal term so the far field stays an SDF; they go through
         # the field in the same call as the samples (one hash + MLP pass instead of two)
         xr = torch.rand(max(256, n // 4), 3, device=self.device, generator=self.gen) * 2 - 1
+        if graphs is not None:  # into the graphs' fixed input buffers before the march's host sync
+            batch, xr = graphs.inputs(batch, xr)
         # a replayed step's samples go straight into its graph's fixed buffers (graphs.march_out)
         smp = march_samples(self.grid.bits, self.grid.resolution, batch["origins"], batch["dirs"], c, jitter=True,
                             stop=self.grid.stop, out=None if graphs is None else graphs.march_out(self, batch, xr, p))
