@@ -14,6 +14,7 @@ _OPS = {
     "hash_encode_jac": "hashgrid",
     "grad_from_jac": "hashgrid",
     "march_rays": "occupancy",
+    "march_rays_capped": "occupancy",
     "occupancy_alpha": "occupancy",
     "render_pattern": "render",
     "project_pattern": "project",

@@ -389,6 +389,83 @@ def march_rays(
     return offsets, counts, t0, t1, ray_index
 
 
+def _capped(counts: torch.Tensor, offsets: torch.Tensor, counts_out: torch.Tensor, total: torch.Tensor,
+            capacity: int) -> None:
+    """The capped march's bookkeeping on the device: ``total`` [1] = all samples (unclamped),
+    ``counts_out`` = each ray's count clamped to the room left before ``capacity``."""
+    total.copy_(offsets[-1:] + counts[-1:])
+    torch.minimum(counts, (capacity - offsets).clamp_min(0), out=counts_out)
+
+
+def march_rays_capped(
+    origins: torch.Tensor,  # [R, 3] float32, normalised space
+    dirs: torch.Tensor,  # [R, 3] float32, unit length
+    bits: torch.Tensor,  # [res^3] uint8
+    resolution: int,
+    step: float,
+    max_samples: int,
+    jitter: torch.Tensor | None,  # [R] float32 in [0, 1)
+    bound: str,
+    near_min: float,
+    stop: torch.Tensor | None,  # [res^3] uint8 or None
+    out: tuple,  # (offsets [R] int32, counts [R] int32, total [1] int32, t0 [C], t1 [C], ray_index [C] int32)
+) -> None:
+    """:func:`march_rays` into fixed buffers of capacity C with no host read (Warp).
+
+    The samples of :func:`march_rays` are written in the same order into ``t0, t1, ray_index``
+    as far as they fit: ``counts`` holds each ray's samples clamped to the room left before C
+    (a ray that starts past C gets none, one that straddles it keeps its first samples), and
+    ``offsets`` the unclamped exclusive cumsum; ``total`` the unclamped sample count on the device
+    (> C: the step did not fit; its caller skips the update). Entries of ``t0, t1, ray_index``
+    past the written samples are left as they were. Nothing waits for the device: a captured
+    training step's march (the count that sizes :func:`march_rays`'s output is the step's one
+    host sync).
+    """
+    offsets, counts, total, t0, t1, ray_index = out
+    o, d, bits, jitter = _check_rays(origins, dirs, bits, resolution, jitter, bound, max_samples)
+    stop, use_stop = _check_stop(stop, bits)
+    R, dev = o.shape[0], o.device
+    cap = int(t0.shape[0])
+    for b, dt, n in ((offsets, torch.int32, R), (counts, torch.int32, R), (total, torch.int32, 1), (t0, torch.float32, cap),
+                     (t1, torch.float32, cap), (ray_index, torch.int32, cap)):
+        if b.dtype != dt or b.dim() != 1 or b.shape[0] != n or not b.is_contiguous() or b.device != dev:
+            raise ValueError(f"march out buffer: need a contiguous {dt} vector of {n} entries on {dev}, "
+                             f"got {b.dtype} {tuple(b.shape)} on {b.device}")
+    if R == 0:
+        total.zero_()
+        return
+    step, near_min = _f32(step), _f32(near_min)
+    box = 1 if bound == "box" else 0
+    wo, wd = _warp.to_wp(o, wp.vec3, ctype=True), _warp.to_wp(d, wp.vec3, ctype=True)
+    wj, wb, ws = _warp.to_wp(jitter, ctype=True), _warp.to_wp(bits, ctype=True), _warp.to_wp(stop, ctype=True)
+    raw = torch.empty(R, dtype=torch.int32, device=dev)
+    per_ray = {0: (o, wp.vec3), 1: (d, wp.vec3), 2: (jitter, None)}
+    ranges = _warp.item_ranges(R, o, MIN_CHUNK_RAYS)
+    _warp.launch_chunked(_march_count_kernel, [wo, wd, wj, wb, int(resolution), step, int(max_samples), box,
+                                               near_min, ws, use_stop, _warp.to_wp(raw, ctype=True)], [], o, ranges,
+                         sliced_in={**per_ray, 11: (raw, None)})
+    torch.sub(torch.cumsum(raw, 0, dtype=torch.int32), raw, out=offsets)
+    _capped(raw, offsets, counts, total, cap)
+    _warp.launch_chunked(_march_fill_kernel, [wo, wd, wj, wb, int(resolution), step, int(max_samples), box,
+                                              near_min, ws, use_stop, _warp.to_wp(offsets, ctype=True),
+                                              _warp.to_wp(counts, ctype=True), 0],
+                         [_warp.to_wp(t0, ctype=True), _warp.to_wp(t1, ctype=True),
+                          _warp.to_wp(ray_index, ctype=True)], o, ranges,
+                         sliced_in={**per_ray, 11: (offsets, None), 12: (counts, None)}, first_arg=13)
+
+
+def march_rays_capped_torch(origins, dirs, bits, resolution, step, max_samples, jitter, bound, near_min, stop,
+                            out: tuple) -> None:
+    """Pure-torch twin of :func:`march_rays_capped` (same arguments and results; it reads the
+    sample count on the host, as :func:`march_rays_torch` does)."""
+    offsets, counts, total, t0, t1, ray_index = out
+    o, c, a, b, r = march_rays_torch(origins, dirs, bits, resolution, step, max_samples, jitter, bound, near_min, stop)
+    offsets.copy_(o)
+    _capped(c, offsets, counts, total, int(t0.shape[0]))
+    n = min(int(a.shape[0]), int(t0.shape[0]))  # the packed samples that fit: the first n
+    t0[:n], t1[:n], ray_index[:n] = a[:n], b[:n], r[:n]
+
+
 def march_rays_torch(
     origins: torch.Tensor,  # [R, 3] float32, normalised space
     dirs: torch.Tensor,  # [R, 3] float32, unit length

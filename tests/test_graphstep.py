@@ -14,7 +14,7 @@ import torch
 from conftest import SMALL_RUN, scene_on
 from fastneus.config import load_config
 from fastneus.data import Scene
-from fastneus.field.renderer import march_samples
+from fastneus.field.renderer import march_samples, march_samples_capped
 from fastneus.train.graphstep import _Entry, ray_bucket, sample_bucket
 
 
@@ -225,14 +225,25 @@ def test_cuda_replayed_graph_matches_the_eager_step(tmp_path, extra):
         a.field.set_progress(p)
         a._set_lr(p)
         rb = b.compute(batch, xr, smp, p)
+        ra = None
         if path:  # the same rays, the same march jitter, through the train-step route
             batch, xr = graphs.inputs(batch, xr)
-            torch.cuda.set_rng_state(b.rng_before_march, b.device)
-            smp2 = march_samples(a.grid.bits, a.grid.resolution, batch["origins"], batch["dirs"], a.cfg,
-                                 out=graphs.march_out(a, batch, xr, p))
-            assert smp2["n_samples"] == smp["n_samples"] and torch.equal(smp2["t0"], smp["t0"])
-            smp = smp2
-        ra = graphs.step(a, batch, xr, smp, p)
+            plan = graphs.capped(a, batch, xr, p)
+            if plan is not None:  # no host sync: the march into the planned graph's buffers
+                torch.cuda.set_rng_state(b.rng_before_march, b.device)
+                march_samples_capped(a.grid.bits, a.grid.resolution, batch["origins"], batch["dirs"], a.cfg,
+                                     plan[1].capped_buffers())
+                if int(plan[1].total) <= plan[1].capacity:  # (past it the step would be skipped: not this test's)
+                    assert int(plan[1].smp["counts"].sum()) == smp["n_samples"]
+                    ra = graphs.run_capped(a, *plan, p)
+            if ra is None:
+                torch.cuda.set_rng_state(b.rng_before_march, b.device)
+                smp2 = march_samples(a.grid.bits, a.grid.resolution, batch["origins"], batch["dirs"], a.cfg,
+                                     out=graphs.march_out(a, batch, xr, p))
+                assert smp2["n_samples"] == smp["n_samples"] and torch.equal(smp2["t0"], smp["t0"])
+                smp = smp2
+        if ra is None:
+            ra = graphs.step(a, batch, xr, smp, p)
         torch.testing.assert_close(ra["loss"], rb["loss"], rtol=1e-4, atol=1e-6)
         _close(a, b, f"step {i}")
         assert p == 0.5 or (float(a.cos_dev) == pytest.approx(a.cos_anneal(p)) and a.cos_anneal(p) < 1.0)
@@ -241,6 +252,8 @@ def test_cuda_replayed_graph_matches_the_eager_step(tmp_path, extra):
         assert int(a.field._levels_t[0]) == a.field.active_levels
     assert graphs.captured >= 1 and graphs.replayed >= 4, graphs.summary()
     assert graphs.enabled
+    assert not path or graphs.unsynced >= 2, graphs.summary()
+    assert int(a._overflow_dev) == 0
 
 
 def test_graphs_make_room_drops_the_least_recent_while_memory_is_short(monkeypatch):
@@ -275,7 +288,7 @@ def test_graphs_released_at_the_end_of_training(monkeypatch):
     monkeypatch.setattr(torch.cuda, "empty_cache", lambda: calls.append("empty"))
     g.release()
     assert not g.cache and calls == ["sync", "empty"]
-    assert g.summary() == {"graphs": 0, "captured": 2, "replayed": 10, "eager": 3, "evicted": 0,
+    assert g.summary() == {"graphs": 0, "captured": 2, "replayed": 10, "eager": 3, "evicted": 0, "unsynced": 0,
                            "captures": g.captures}
     g.release()  # nothing cached: nothing to hand back
     assert calls == ["sync", "empty"]
@@ -331,3 +344,62 @@ def test_a_key_is_captured_only_when_the_next_step_repeats_it():
     batch = {"origins": torch.zeros(3328, 3), "dirs": torch.zeros(3328, 3)}
     # a few % more samples on the next step: the pending key's capacity still holds them
     assert g._capacity(_T, batch, 143_000, 0.5) == pending[1]
+
+
+def test_capped_plan_uses_a_captured_graph_with_room_for_the_estimate():
+    """StepGraphs.capped: the last known count, scaled to this step's rays and CAP_MARGIN above,
+    picks a key whose graph exists; none without a known count, without a graph, or once the
+    count outgrew every capacity (the step then counts on the host)."""
+    import collections
+
+    from fastneus.train import graphstep
+
+    g = object.__new__(graphstep.StepGraphs)
+    g.cache, g._pending = collections.OrderedDict(), None
+
+    class _T:
+        cfg = load_config("cpu-quick")
+
+        @staticmethod
+        def photo_priors(p):
+            return False, False
+
+    batch = {"origins": torch.zeros(1024, 3), "dirs": torch.zeros(1024, 3)}
+    assert g.capped(_T, batch, None, 0.5) is None  # nothing known yet
+    g._last = (100_000, 1024)
+    cap = g._capacity(_T, batch, int(100_000 * 1.05) + 1, 0.5)  # what a counted step would make
+    key = g._key(_T, batch, cap, 0.5)
+    e = type("E", (), {"graph": None})()
+    g.cache[key] = e
+    assert g.capped(_T, batch, None, 0.5) is None  # no graph yet
+    e.graph = object()
+    assert g.capped(_T, batch, None, 0.5) == (key, e)
+    assert g.samples_estimate(2048) == 200_000
+    g._last = (int(cap / graphstep.CAP_MARGIN) + 50, 1024)  # grown past the room: count on the host
+    assert g.capped(_T, batch, None, 0.5) is None
+
+
+def test_a_step_that_does_not_fit_is_not_applied(small_scene, tmp_path):
+    """fits False (a capped march past its buffers): the guarded update leaves every parameter
+    as it was and counts the step as overflowed, not as non-finite; fits True: a normal step."""
+    a, b = _pair(small_scene, tmp_path, "cpu")
+    a.opt._scal = torch.zeros(len(a.opt.param_groups), 2)
+    batch, xr, smp = _inputs(b, 0.5)
+    a.field.set_progress(0.5)
+    a._set_lr(0.5)
+    e = _Entry(batch, xr, sample_bucket(smp["n_samples"]))
+    e.load(batch, xr, smp)
+    e.total.fill_(e.capacity + 1)
+    e.mark_live()
+    assert not bool(e.fits)
+    before = _params(a)
+    a.opt.prepare_device_step()
+    a.compute(e.batch, e.xr, e.smp, 0.5, valid=e.valid, device_adam=True, fits=e.fits)
+    assert all(torch.equal(x, y) for x, y in zip(before, _params(a)))
+    assert int(a._overflow_dev) == 1 and a.skipped == 0
+    e.total.fill_(e.capacity)
+    e.mark_live()
+    a.opt.prepare_device_step()
+    a.compute(e.batch, e.xr, e.smp, 0.5, valid=e.valid, device_adam=True, fits=e.fits)
+    assert not all(torch.equal(x, y) for x, y in zip(before, _params(a)))
+    assert int(a._overflow_dev) == 1

@@ -330,3 +330,37 @@ def test_grid_update_near_queries_the_occupied_cells_and_their_neighbours(device
     g0.update(sdf_at(0.5), 100.0, 0.01, margin=margin, near=0.5)
     away = res ** 3 - near_before
     assert abs(sum(seen) - near_before - 0.5 * away) < 0.05 * away
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_capped_march_matches_the_march_and_its_twin(device):
+    """march_rays_capped: with room for every sample, the same as march_rays (written into the
+    fixed buffers, total on the device); with too little room, the first C packed samples, each
+    ray's count clamped to what fits, total unclamped; Warp and torch twin alike."""
+    gen = torch.Generator().manual_seed(int(torch.randint(0, 2**31 - 1, (1,))))
+    res = 16
+    bits = (torch.rand(res**3, generator=gen) < 0.4).to(torch.uint8).to(device)
+    o, d, jitter = _random_rays(300, device, gen)
+    args = (o, d, bits, res, 0.02, 32, jitter, "sphere", 0.0, None)
+    ref = occ.march_rays(*args)
+    s = int(ref[2].shape[0])
+    assert s > 200
+    for cap in (s + 40, s // 2):
+        got = []
+        for fn in (occ.march_rays_capped, occ.march_rays_capped_torch):
+            bufs = (torch.full((300,), -1, dtype=torch.int32, device=device), torch.full((300,), -1, dtype=torch.int32, device=device),
+                    torch.zeros(1, dtype=torch.int32, device=device), torch.full((cap,), -7.0, device=device),
+                    torch.full((cap,), -7.0, device=device), torch.full((cap,), -7, dtype=torch.int32, device=device))
+            fn(*args, out=bufs)
+            offsets, counts, total, t0, t1, ri = bufs
+            assert int(total) == s and torch.equal(offsets, ref[0])
+            n = min(s, cap)
+            assert int(counts.sum()) == n and bool((counts <= ref[1]).all())
+            assert bool(((offsets + counts <= cap) | (counts == 0)).all())
+            assert torch.equal(t0[:n], ref[2][:n]) and torch.equal(ri[:n], ref[4][:n])
+            assert bool((t0[n:] == -7).all())  # the rest untouched
+            got.append(bufs)
+        for x, y in zip(*got):
+            assert torch.equal(x, y)
+    with pytest.raises(ValueError, match="march out buffer"):
+        occ.march_rays_capped(*args, out=(bufs[0][:10],) + bufs[1:])

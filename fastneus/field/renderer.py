@@ -66,6 +66,17 @@ def march_samples(bits: torch.Tensor, grid_res: int, origins: torch.Tensor, dirs
             "n_samples": int(t0.shape[0])}
 
 
+def march_samples_capped(bits: torch.Tensor, grid_res: int, origins: torch.Tensor, dirs: torch.Tensor, cfg,
+                         out: tuple, *, stop: torch.Tensor | None = None) -> None:
+    """:func:`march_samples` (jittered) into fixed buffers with no host sync (``march_rays_capped``:
+    ``out`` = offsets, counts [B] int32, total [1] int32, t0, t1 [C] float32, ray_index [C] int32;
+    the samples past the capacity C are dropped and ``total`` says so)."""
+    march = get_op("march_rays_capped", cfg.run.backend)
+    jit = torch.rand(origins.shape[0], device=origins.device)
+    march(origins, dirs, bits, grid_res, cfg.rays.march_step, cfg.rays.max_samples_per_ray, jit, cfg.rays.bound, 0.0,
+          stop, out=out)
+
+
 def render_rays(field, bits: torch.Tensor, grid_res: int, proj, origins: torch.Tensor, dirs: torch.Tensor,
                 fidx: torch.Tensor, cfg, *, i_r: torch.Tensor, i_b: torch.Tensor, cos_anneal: float,
                 jitter: bool = True, with_normals: bool = False, curvature: bool = False,

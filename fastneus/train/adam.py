@@ -172,7 +172,8 @@ class Adam:
                 self._copied = [torch.cuda.Event(), torch.cuda.Event()]  # not recorded yet: no wait
                 self._turn = 0
             i = self._turn = 1 - self._turn
-            self._copied[i].synchronize()  # its copy of two steps back: long done (a sync only in theory)
+            if not self._copied[i].query():  # its copy of two steps back: waits only if the host ran that far ahead
+                self._copied[i].synchronize()
             self._pinned[i].copy_(torch.tensor(vals, dtype=self._scal.dtype))
             self._scal.view(-1).copy_(self._pinned[i], non_blocking=True)
             self._copied[i].record()

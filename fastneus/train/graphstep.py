@@ -41,6 +41,10 @@ MAX_GRAPHS = 8  # least recently used graphs are dropped past this (each keeps i
 # graph is kept (12 % captured 17 graphs in a 10-s rock run, 25 % 12; samples per step stay within
 # the range the adaptive count itself spans in a few steps)
 RAY_SLACK = 0.25
+# a capped step (no host sync) plans its capacity at least this far above the last count read back
+# (scaled to its ray count): the count drifts by a few % per step, and a step past its capacity is
+# skipped. Below the 5 % (+ rounding) that a counted step's new capacity gets, so those graphs serve.
+CAP_MARGIN = 1.04
 MIN_FREE = 0.35  # ... and while less than this share of the GPU's memory is free (_make_room)
 
 
@@ -83,12 +87,21 @@ class _Entry:
         self.valid = torch.ones(capacity + xr.shape[0], device=dev)
         self._index = torch.arange(capacity, dtype=torch.int32, device=dev)
         self._live = torch.zeros(capacity, dtype=torch.bool, device=dev)
+        # the capped march's unclamped sample count (0 after a load: those steps always fit) and
+        # whether it fits the capacity (read by the update's guard when the graph replays)
+        self.total = torch.zeros(1, dtype=torch.int32, device=dev)
+        self.fits = torch.ones(1, dtype=torch.bool, device=dev)
         self.graph: torch.cuda.CUDAGraph | None = None
         self.rec: dict | None = None
 
     def buffers(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """t0, t1, ray_index [C]: where the march writes this step's samples (``march_samples(out=)``)."""
         return self.smp["t0"], self.smp["t1"], self.smp["ray_index"]
+
+    def capped_buffers(self) -> tuple:
+        """offsets, counts [R], total [1], t0, t1, ray_index [C]: the capped march's outputs
+        (:func:`~fastneus.field.renderer.march_samples_capped`), all read by the graph."""
+        return (self.smp["offsets"], self.smp["counts"], self.total, *self.buffers())
 
     def load(self, batch: dict, xr: torch.Tensor, smp: dict) -> None:
         """Copy this step's inputs in (device-to-device copies: no host sync). Samples the march
@@ -103,6 +116,7 @@ class _Entry:
             self.xr.copy_(xr)
         for k in ("offsets", "counts"):
             self.smp[k].copy_(smp[k])
+        self.total.zero_()  # this step's samples were counted on the host: they fit
         if smp["t0"].data_ptr() != self.smp["t0"].data_ptr():
             s = smp["n_samples"]
             for k in ("t0", "t1", "ray_index"):
@@ -111,11 +125,13 @@ class _Entry:
 
     def mark_live(self) -> None:
         """``valid[:C]``: 1 before the last ray's end (``offsets[-1] + counts[-1]``, the live
-        sample count), 0 on the padding. Read from the loaded offsets on the device, so a
-        captured graph does it when it replays (no fill per step outside it)."""
+        sample count), 0 on the padding; ``fits``: the capped march's count within the capacity.
+        Read from the loaded offsets on the device, so a captured graph does it when it replays
+        (no fill per step outside it)."""
         total = self.smp["offsets"][-1:] + self.smp["counts"][-1:]
         torch.lt(self._index, total, out=self._live)
         self.valid[:self.capacity].copy_(self._live)
+        torch.le(self.total, self.capacity, out=self.fits)
 
 
 class StepGraphs:
@@ -128,6 +144,9 @@ class StepGraphs:
 
     _pending: tuple | None = None  # the last step's key when it ran eagerly (not captured)
     _planned: tuple | None = None  # (key, entry, sample count) decided in this step's march (march_out)
+    _last: tuple | None = None  # (samples, rays) of the last step whose count is known on the host
+    _lag: dict | None = None  # the capped steps' count read back (pinned host int, event)
+    unsynced = 0  # replays planned without the march's host sync (capped)
     _shared: frozenset = frozenset()  # (an instance gets a set)
 
     def __init__(self, trainer, console=None):
@@ -229,6 +248,7 @@ class StepGraphs:
         """Run this step's compute part: replay its graph, or run it eagerly and capture it."""
         tr.fill_step_scalars(p)  # read at replay (fills: no host sync)
         planned, self._planned = self._planned, None
+        self._last = (smp["n_samples"], batch["origins"].shape[0])  # counted on the host: the estimate's base
         if planned is not None and planned[2] == smp["n_samples"]:
             key, e = planned[:2]
         else:  # the march was not given march_out
@@ -257,14 +277,14 @@ class StepGraphs:
         self.side.wait_stream(cur)
         with torch.cuda.stream(self.side):
             e.mark_live()
-            rec = tr.compute(e.batch, e.xr, e.smp, p, valid=e.valid, device_adam=True)
+            rec = tr.compute(e.batch, e.xr, e.smp, p, valid=e.valid, device_adam=True, fits=e.fits)
         cur.wait_stream(self.side)
         try:
             g = torch.cuda.CUDAGraph()
             tr.opt.zero_grad(set_to_none=True)  # the graph allocates its own gradients
             with torch.cuda.graph(g, stream=self.side):
                 e.mark_live()
-                out = tr.compute(e.batch, e.xr, e.smp, p, valid=e.valid, device_adam=True)
+                out = tr.compute(e.batch, e.xr, e.smp, p, valid=e.valid, device_adam=True, fits=e.fits)
             cur.wait_stream(self.side)
             e.graph, e.rec = g, out
             self.captured += 1
@@ -277,6 +297,66 @@ class StepGraphs:
                 self.console.print(f"CUDA graph capture failed ({type(err).__name__}: {str(err).splitlines()[0][:120]}); "
                                    "training goes on with eager steps (run.cuda_graph=off hides this)")
         return rec
+
+    def capped(self, tr, batch: dict, xr: torch.Tensor, p: float) -> tuple | None:
+        """This step's (key, entry) when it can replay a captured graph without the march's host
+        sync: its sample count estimated from the last one read back (scaled to this ray count,
+        :data:`CAP_MARGIN` above) picks a key whose graph exists. None: the step counts its
+        samples on the host (:meth:`step`), as the first steps of a key and a count that
+        outgrew its capacities do. A step whose samples then do not fit is not applied (the
+        guard's flag, ``fits``) and the next one plans from its larger count."""
+        est = self._estimate(batch["origins"].shape[0])
+        if est is None:
+            return None
+        capacity = self._capacity(tr, batch, est, p)
+        key = self._key(tr, batch, capacity, p)
+        e = self.cache.get(key)
+        if e is None or e.graph is None:
+            return None
+        return key, e
+
+    def run_capped(self, tr, key: tuple, e: _Entry, p: float) -> dict:
+        """Replay ``e``'s graph after the capped march wrote into its buffers (no host sync), and
+        start reading its sample count back for the next steps' estimate."""
+        tr.fill_step_scalars(p)
+        tr.opt.prepare_device_step()
+        self.cache.move_to_end(key)
+        e.graph.replay()
+        self.replayed += 1
+        self.unsynced += 1
+        self._read_back(e.total, e.smp["offsets"].shape[0])
+        return dict(e.rec)
+
+    def samples_estimate(self, rays: int) -> int:
+        """The sample count of a step of ``rays`` rays from the last one known (0: none yet)."""
+        if self._last is None:
+            return 0
+        s, r = self._last
+        return int(round(s * rays / max(1, r)))
+
+    def _poll(self) -> None:
+        if self._lag is not None and self._lag["pending"] and self._lag["event"].query():
+            self._last = (int(self._lag["host"][0]), self._lag["rays"])
+            self._lag["pending"] = False
+
+    def _estimate(self, rays: int) -> int | None:
+        self._poll()
+        if self._last is None:
+            return None
+        return int(math.ceil(self.samples_estimate(rays) * CAP_MARGIN))
+
+    def _read_back(self, total: torch.Tensor, rays: int) -> None:
+        """An asynchronous copy of ``total`` to page-locked memory (one in flight at a time: a
+        step whose copy would overwrite one not yet done skips it)."""
+        self._poll()
+        if self._lag is None:
+            self._lag = {"host": torch.zeros(1, dtype=torch.int32, pin_memory=True), "event": torch.cuda.Event(),
+                         "pending": False, "rays": 0}
+        if self._lag["pending"]:
+            return
+        self._lag["host"].copy_(total, non_blocking=True)
+        self._lag["event"].record()
+        self._lag["pending"], self._lag["rays"] = True, rays
 
     def _make_room(self) -> None:
         """Before a new graph: drop the least recently used ones while less than
@@ -307,4 +387,4 @@ class StepGraphs:
 
     def summary(self) -> dict:
         return {"graphs": len(self.cache), "captured": self.captured, "replayed": self.replayed, "eager": self.eager,
-                "evicted": self.evicted, "captures": self.captures[:64]}
+                "evicted": self.evicted, "unsynced": self.unsynced, "captures": self.captures[:64]}

@@ -15,7 +15,7 @@ import torch
 from fastneus.config import Config, camera_blur_sigma, config_from_dict, save_config
 from fastneus.errors import FastneusError
 from fastneus.field.model import SDFField
-from fastneus.field.renderer import march_samples, pattern_pass_split, shade_samples
+from fastneus.field.renderer import march_samples, march_samples_capped, pattern_pass_split, shade_samples
 from fastneus.train.geometry_init import fit_batch
 from fastneus.io import open_append
 from fastneus.kernels.occupancy import OccupancyGrid
@@ -276,6 +276,8 @@ class Trainer:
         self._skipped = 0           # NaN/Inf steps skipped (CUDA: + the device counter below)
         # on CUDA the NaN guard gates the Adam update on the device: no host sync per step
         self._skipped_dev = torch.zeros((), dtype=torch.int64, device=self.device) if self.device.type == "cuda" else None
+        # captured steps whose capped march outgrew its buffers (not applied; graphstep.StepGraphs.capped)
+        self._overflow_dev = torch.zeros((), dtype=torch.int64, device=self.device)
         self.empty_steps = 0        # consecutive steps whose rays found no occupied cell
         # rays per training pixel: the camera's defocus as several rays averaged (rays.camera_blur)
         self.blur_sub = cfg.rays.blur_rays if self.camera_blur > 0 and cfg.rays.blur_via == "rays" else 1
@@ -635,13 +637,26 @@ class Trainer:
         xr = torch.rand(max(256, n // 4), 3, device=self.device, generator=self.gen) * 2 - 1
         if graphs is not None:  # into the graphs' fixed input buffers before the march's host sync
             batch, xr = graphs.inputs(batch, xr)
+            capped = graphs.capped(self, batch, xr, p)
+            if capped is not None:
+                # the graph's key planned from the last sample count read back: the march writes into
+                # its buffers and the replay follows with no host sync (graphstep.StepGraphs.capped)
+                key, e = capped
+                march_samples_capped(self.grid.bits, self.grid.resolution, batch["origins"], batch["dirs"], c,
+                                     e.capped_buffers(), stop=self.grid.stop)
+                s = graphs.samples_estimate(n)
+                self.n_rays = self._next_ray_count(n, s)
+                rec = graphs.run_capped(self, key, e, p)
+                self.rig.fix_gauge()
+                self.step += 1
+                rec["spr"], rec["samples"] = s / n, s
+                return rec
         # a replayed step's samples go straight into its graph's fixed buffers (graphs.march_out)
         smp = march_samples(self.grid.bits, self.grid.resolution, batch["origins"], batch["dirs"], c, jitter=True,
                             stop=self.grid.stop, out=None if graphs is None else graphs.march_out(self, batch, xr, p))
         s = smp["n_samples"]
         # adapt the ray count to the sample budget (s is known on the host from marching)
-        mean_spr = max(1.0, s / n)
-        self.n_rays = int(min(c.rays.max_rays, max(c.rays.min_rays, 0.8 * self.n_rays + 0.2 * c.rays.target_samples / mean_spr)))
+        self.n_rays = self._next_ray_count(n, s)
         if s == 0:
             # an empty grid would stall training for good: re-open it after a few empty steps
             self.empty_steps += 1
@@ -662,8 +677,14 @@ class Trainer:
         rec["spr"], rec["samples"] = s / n, s
         return rec
 
+    def _next_ray_count(self, n: int, s: int) -> int:
+        """The ray count adapted to the sample budget after a step of ``n`` rays and ``s`` samples."""
+        c = self.cfg.rays
+        mean_spr = max(1.0, s / max(1, n))
+        return int(min(c.max_rays, max(c.min_rays, 0.8 * self.n_rays + 0.2 * c.target_samples / mean_spr)))
+
     def compute(self, batch: dict, xr: torch.Tensor, smp: dict, p: float, valid: torch.Tensor | None = None,
-                device_adam: bool = False) -> dict | None:
+                device_adam: bool = False, fits: torch.Tensor | None = None) -> dict | None:
         """The step after marching: field, compositing, losses, backward, guarded Adam update.
 
         Args:
@@ -674,6 +695,8 @@ class Trainer:
                 captured step's fixed-capacity buffers); None: every sample is live.
             device_adam: the Adam update reads its learning rates from device scalars (prepared
                 by ``Adam.prepare_device_step`` before the step; a captured step).
+            fits: [1] bool on the device, or None: False skips the update (a capped march's
+                samples did not fit its buffers; counted in ``overflowed``).
         Returns:
             {"loss", "l1", "mse", "eik"} as tensors, or None when the host guard skipped the step.
         """
@@ -681,12 +704,15 @@ class Trainer:
         self.opt.zero_grad(set_to_none=True)
         loss.backward()
         if self._skipped_dev is not None:  # NaN/Inf guard on the device (no host sync)
-            ok = finite_flag(self.opt, loss)
+            finite = finite_flag(self.opt, loss)
+            ok = finite if fits is None else finite & fits.reshape(finite.shape)
             if device_adam:
                 self.opt.device_update(ok)
             else:
                 self.opt.gated_step(ok)
-            self._skipped_dev += (~ok).to(torch.int64)
+            self._skipped_dev += (~finite).to(torch.int64)
+            if fits is not None:
+                self._overflow_dev += (~fits).sum().to(torch.int64)
         elif not finite_step(self.opt, loss):  # NaN/Inf guard
             self._skipped += 1
             return None
@@ -860,9 +886,11 @@ class Trainer:
             t_save += time.perf_counter()
         if self.graphs is not None:  # how much of the run replayed captured steps (printed and saved)
             g = self.graphs.summary()
+            g["overflowed"] = int(self._overflow_dev)
             last["cuda_graphs"] = g
             if self.console is not None:
-                self.console.print(f"CUDA graphs: {g['replayed']} steps replayed, {g['captured']} captured, "
+                self.console.print(f"CUDA graphs: {g['replayed']} steps replayed ({g['unsynced']} without a host sync, "
+                                   f"{g['overflowed']} of them past their buffers: not applied), {g['captured']} captured, "
                                    f"{g['eager']} eager{'' if self.graphs.enabled else ' (capture failed: off)'}")
             self.graphs.release()
         clock = self.clock
