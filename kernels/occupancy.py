@@ -360,33 +360,44 @@ def march_rays(
     dev = o.device
     if R == 0:
         return _empty_result(0, dev)
-    step = _f32(step)
-    near_min = _f32(near_min)
-    box = 1 if bound == "box" else 0
-    # array descriptors (ctype): a quarter of wp.array's host time per argument; on the GPU the
-    # fill launch sits between the count read and the replay, with the device idle
-    wo, wd = _warp.to_wp(o, wp.vec3, ctype=True), _warp.to_wp(d, wp.vec3, ctype=True)
-    wj, wb = _warp.to_wp(jitter, ctype=True), _warp.to_wp(bits, ctype=True)
+    count, fill = _march_passes(o, d, jitter, bits, stop, use_stop, resolution, _f32(step), max_samples,
+                                1 if bound == "box" else 0, _f32(near_min))
     counts = torch.empty(R, dtype=torch.int32, device=dev)
-    # one thread per ray, writing only its own count (and, below, its own samples)
-    per_ray = {0: (o, wp.vec3), 1: (d, wp.vec3), 2: (jitter, None)}
-    ranges = _warp.item_ranges(R, o, MIN_CHUNK_RAYS)
-    ws = _warp.to_wp(stop, ctype=True)
-    _warp.launch_chunked(_march_count_kernel, [wo, wd, wj, wb, int(resolution), step, int(max_samples), box,
-                                               near_min, ws, use_stop, _warp.to_wp(counts, ctype=True)], [], o, ranges,
-                         sliced_in={**per_ray, 11: (counts, None)})
+    count(counts)
     csum = torch.cumsum(counts, 0, dtype=torch.int32)
     offsets = csum - counts
     total = int(csum[-1].item())  # the one host sync: the output size must be known
     t0, t1, ray_index = _sample_buffers(total, dev, out)
     if total > 0:
-        _warp.launch_chunked(_march_fill_kernel, [wo, wd, wj, wb, int(resolution), step, int(max_samples), box,
-                                                  near_min, ws, use_stop, _warp.to_wp(offsets, ctype=True),
-                                                  _warp.to_wp(counts, ctype=True), 0],
+        fill(offsets, counts, t0, t1, ray_index)
+    return offsets, counts, t0, t1, ray_index
+
+
+def _march_passes(o, d, jitter, bits, stop, use_stop: int, resolution: int, step, max_samples: int, box: int,
+                  near_min):
+    """The march's two Warp passes over the rays ``o, d`` (checked): ``count(counts [R])`` and
+    ``fill(offsets [R], counts [R], t0, t1, ray_index)`` (one thread per ray, chunked on the CPU)."""
+    # array descriptors (ctype): a quarter of wp.array's host time per argument; on the GPU the
+    # fill launch sat between the count read and the replay, with the device idle
+    common = [_warp.to_wp(o, wp.vec3, ctype=True), _warp.to_wp(d, wp.vec3, ctype=True),
+              _warp.to_wp(jitter, ctype=True), _warp.to_wp(bits, ctype=True), int(resolution), step,
+              int(max_samples), box, near_min, _warp.to_wp(stop, ctype=True), use_stop]
+    per_ray = {0: (o, wp.vec3), 1: (d, wp.vec3), 2: (jitter, None)}  # each thread reads only its own ray
+    ranges = _warp.item_ranges(o.shape[0], o, MIN_CHUNK_RAYS)
+
+    def count(counts: torch.Tensor) -> None:
+        _warp.launch_chunked(_march_count_kernel, common + [_warp.to_wp(counts, ctype=True)], [], o, ranges,
+                             sliced_in={**per_ray, 11: (counts, None)})
+
+    def fill(offsets: torch.Tensor, counts: torch.Tensor, t0: torch.Tensor, t1: torch.Tensor,
+             ray_index: torch.Tensor) -> None:
+        _warp.launch_chunked(_march_fill_kernel, common + [_warp.to_wp(offsets, ctype=True),
+                                                           _warp.to_wp(counts, ctype=True), 0],
                              [_warp.to_wp(t0, ctype=True), _warp.to_wp(t1, ctype=True),
                               _warp.to_wp(ray_index, ctype=True)], o, ranges,
                              sliced_in={**per_ray, 11: (offsets, None), 12: (counts, None)}, first_arg=13)
-    return offsets, counts, t0, t1, ray_index
+
+    return count, fill
 
 
 def _capped(counts: torch.Tensor, offsets: torch.Tensor, counts_out: torch.Tensor, total: torch.Tensor,
@@ -434,24 +445,13 @@ def march_rays_capped(
     if R == 0:
         total.zero_()
         return
-    step, near_min = _f32(step), _f32(near_min)
-    box = 1 if bound == "box" else 0
-    wo, wd = _warp.to_wp(o, wp.vec3, ctype=True), _warp.to_wp(d, wp.vec3, ctype=True)
-    wj, wb, ws = _warp.to_wp(jitter, ctype=True), _warp.to_wp(bits, ctype=True), _warp.to_wp(stop, ctype=True)
+    count, fill = _march_passes(o, d, jitter, bits, stop, use_stop, resolution, _f32(step), max_samples,
+                                1 if bound == "box" else 0, _f32(near_min))
     raw = torch.empty(R, dtype=torch.int32, device=dev)
-    per_ray = {0: (o, wp.vec3), 1: (d, wp.vec3), 2: (jitter, None)}
-    ranges = _warp.item_ranges(R, o, MIN_CHUNK_RAYS)
-    _warp.launch_chunked(_march_count_kernel, [wo, wd, wj, wb, int(resolution), step, int(max_samples), box,
-                                               near_min, ws, use_stop, _warp.to_wp(raw, ctype=True)], [], o, ranges,
-                         sliced_in={**per_ray, 11: (raw, None)})
+    count(raw)
     torch.sub(torch.cumsum(raw, 0, dtype=torch.int32), raw, out=offsets)
     _capped(raw, offsets, counts, total, cap)
-    _warp.launch_chunked(_march_fill_kernel, [wo, wd, wj, wb, int(resolution), step, int(max_samples), box,
-                                              near_min, ws, use_stop, _warp.to_wp(offsets, ctype=True),
-                                              _warp.to_wp(counts, ctype=True), 0],
-                         [_warp.to_wp(t0, ctype=True), _warp.to_wp(t1, ctype=True),
-                          _warp.to_wp(ray_index, ctype=True)], o, ranges,
-                         sliced_in={**per_ray, 11: (offsets, None), 12: (counts, None)}, first_arg=13)
+    fill(offsets, counts, t0, t1, ray_index)
 
 
 def march_rays_capped_torch(origins, dirs, bits, resolution, step, max_samples, jitter, bound, near_min, stop,
