@@ -399,6 +399,8 @@ def _hash_jac_bwd_kernel(
                 a = gj[0] * sx
                 b = gj[1] * sy
                 c = gj[2] * sz
+            if g == 0.0 and a == 0.0 and b == 0.0 and c == 0.0:
+                continue  # nothing to add (a captured step's padded samples): 8 atomics saved
             wp.atomic_add(grad_table, i000 + f, w000 * g - a * gy * gz - b * gx * gz - c * gx * gy)
             wp.atomic_add(grad_table, i100 + f, w100 * g + a * gy * gz - b * fx * gz - c * fx * gy)
             wp.atomic_add(grad_table, i010 + f, w010 * g - a * fy * gz + b * gx * gz - c * gx * fy)

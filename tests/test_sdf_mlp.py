@@ -113,3 +113,40 @@ def test_field_fused_vs_autograd_whole_loss(device):
     for i, (a, b) in enumerate(zip(*res)):
         assert float(b.abs().max()) > 0, i
         assert float((a - b).abs().max()) <= 1e-4 * float(b.abs().max()), i
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_colour_stack_and_colsum_match_autograd(device):
+    """mlp_forward (the colour network's Linear nodes with the bias gradient as a matrix
+    product) against calling the module: same output and gradients to the input and every
+    weight for the same random upstream gradient; colsum against sum(0)."""
+    from fastneus.field.sdf_mlp import colsum, mlp_forward
+
+    g0 = torch.Generator(device="cpu").manual_seed(int(torch.randint(0, 2**31 - 1, (1,))))
+    net = nn.Sequential(nn.Linear(21, 64), nn.ReLU(inplace=True), nn.Linear(64, 64), nn.ReLU(inplace=True),
+                        nn.Linear(64, 3)).to(device)
+    x = torch.randn(5000, 21, generator=g0).to(device)
+    up = torch.randn(5000, 3, generator=g0).to(device)
+    results = []
+    for ours in (True, False):
+        for p in net.parameters():
+            p.grad = None
+        xi = x.clone().requires_grad_()
+        out = mlp_forward(net, xi) if ours else net(xi)
+        (out * up).sum().backward()
+        results.append([out.detach(), xi.grad] + [p.grad.clone() for p in net.parameters()])
+    for i, (a, b) in enumerate(zip(*results)):
+        torch.testing.assert_close(a, b, rtol=1e-4, atol=1e-5 * (float(b.abs().max()) + 1e-12), msg=str(i))
+    y = torch.randn(70001, 16, generator=g0).to(device)
+    for gemm in (None, True, False):
+        torch.testing.assert_close(colsum(y, gemm), y.sum(0), rtol=1e-4, atol=1e-3)
+
+
+def test_colour_stack_gradcheck_float64():
+    from fastneus.field.sdf_mlp import mlp_forward
+
+    torch.manual_seed(3)
+    net = nn.Sequential(nn.Linear(5, 6), nn.ReLU(inplace=True), nn.Linear(6, 2)).double()
+    x = torch.randn(7, 5, dtype=torch.float64, requires_grad=True)
+    params = list(net.parameters())
+    assert torch.autograd.gradcheck(lambda x, *p: mlp_forward(net, x), (x, *params))

@@ -15,7 +15,7 @@ import math
 import torch
 import torch.nn as nn
 
-from fastneus.field.sdf_mlp import fusable, mlp_and_input_grad
+from fastneus.field.sdf_mlp import fusable, mlp_and_input_grad, mlp_forward
 from fastneus.kernels import get_op
 from fastneus.kernels.hashgrid import HashGridConfig, init_table
 
@@ -265,7 +265,7 @@ class SDFField(nn.Module):
         """
         n = normal / normal.norm(dim=-1, keepdim=True).clamp_min(1e-6)
         parts = [x, n] + ([dirs] if self.network.view_dependent else []) + [geo]
-        return torch.sigmoid(self.color_net(torch.cat(parts, dim=-1)))
+        return torch.sigmoid(mlp_forward(self.color_net, torch.cat(parts, dim=-1)))
 
     def inv_s(self) -> torch.Tensor:
         """[1] NeuS sharpness exp(10 v), at least the scheduled floor, at most 1e6."""

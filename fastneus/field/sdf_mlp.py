@@ -34,6 +34,55 @@ import torch.nn as nn
 import torch.nn.functional as F
 
 
+def colsum(x: torch.Tensor, gemm: bool | None = None) -> torch.Tensor:
+    """``x.sum(0)`` of an [N, H] tensor as a [1, N] x [N, H] matrix product: the bias gradients
+    of the small networks. On CUDA torch's column reduction over ~2^18 rows ran at ~1 TB/s (four
+    of them: 0.24 ms of a 4.8-ms step on an H200); the product is cuBLAS's split-K GEMV.
+
+    Args:
+        x: [N, H]; gemm: the product (True) or ``sum(0)`` (False); None: the product on CUDA.
+    Returns:
+        [H] the column sums (same dtype and device).
+    """
+    if not (x.device.type == "cuda" if gemm is None else gemm):
+        return x.sum(0)
+    return (x.new_ones(1, x.shape[0]) @ x).view(-1)
+
+
+class _Linear(torch.autograd.Function):
+    """``F.linear(x, w, b)`` with the bias gradient from :func:`colsum` (else the same GEMMs)."""
+
+    @staticmethod
+    def forward(ctx, x, w, b):
+        ctx.save_for_backward(x, w)
+        return torch.addmm(b, x, w.t())
+
+    @staticmethod
+    def backward(ctx, g):
+        x, w = ctx.saved_tensors
+        gx = g @ w if ctx.needs_input_grad[0] else None
+        return gx, g.t() @ x, colsum(g)
+
+
+def mlp_forward(net: nn.Sequential, x: torch.Tensor) -> torch.Tensor:
+    """``net(x)`` for a stack of Linear and ReLU modules, each Linear through :class:`_Linear`
+    (the colour network; same parameters and maths as calling the module).
+
+    Args:
+        net: Linear / ReLU modules; x: [N, D_in].
+    Returns:
+        [N, D_out].
+    """
+    for m in net:
+        if isinstance(m, nn.Linear) and m.bias is not None:
+            x = _Linear.apply(x, m.weight, m.bias)
+        elif isinstance(m, nn.ReLU):
+            x = torch.relu(x)
+        else:
+            x = m(x)
+    return x
+
+
 class _SoftplusMLPWithGrad(torch.autograd.Function):
     @staticmethod
     def forward(ctx, beta: float, w1, b1, w2, b2, *parts):
@@ -73,10 +122,10 @@ class _SoftplusMLPWithGrad(torch.autograd.Function):
         grad_parts = [dz @ wp if ctx.needs_input_grad[5 + i] else None for i, wp in enumerate(w1p)]
         m = s.t() @ l_g                                      # [H, D] = sum_n s_n L_g,n^T
         grad_w1 = torch.cat([dz.t() @ t for t in parts], 1).add_(m * w[:, None])  # + (s w)^T L_g
-        grad_b1 = dz.sum(0)
+        grad_b1 = colsum(dz)
         grad_w2 = l_out.t() @ h
         grad_w2[0] += (m * w1).sum(1)                        # sum_n P * s = rowsum(W1 * s^T L_g)
-        grad_b2 = l_out.sum(0)
+        grad_b2 = colsum(l_out)
         return None, grad_w1, grad_b1, grad_w2, grad_b2, *grad_parts
 
 
