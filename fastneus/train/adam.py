@@ -176,7 +176,7 @@ class Adam:
                 self._copied[i].synchronize()
             self._pinned[i].copy_(torch.tensor(vals, dtype=self._scal.dtype))
             self._scal.view(-1).copy_(self._pinned[i], non_blocking=True)
-            self._copied[i].record()
+            self._copied[i].record(torch.cuda.current_stream(dev))  # the copy's stream (cuda:N too)
         else:
             self._scal.view(-1).copy_(torch.tensor(vals, dtype=self._scal.dtype))
 

@@ -355,7 +355,7 @@ class StepGraphs:
         if self._lag["pending"]:
             return
         self._lag["host"].copy_(total, non_blocking=True)
-        self._lag["event"].record()
+        self._lag["event"].record(torch.cuda.current_stream(self.device))  # the copy's stream (cuda:N too)
         self._lag["pending"], self._lag["rays"] = True, rays
 
     def _make_room(self) -> None:
