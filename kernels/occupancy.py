@@ -243,6 +243,15 @@ def _empty_result(R: int, device) -> tuple[torch.Tensor, ...]:
             torch.zeros(0, dtype=torch.int32, device=device))
 
 
+def _check_out(b: torch.Tensor, dtype, n: int, device, exact: bool) -> None:
+    """A caller's output buffer: a contiguous ``dtype`` vector on ``device`` of ``n`` (``exact``)
+    or at least ``n`` entries; else a ValueError (a wrong buffer would be written past its end)."""
+    if (b.dtype != dtype or b.dim() != 1 or (b.shape[0] != n if exact else b.shape[0] < n)
+            or not b.is_contiguous() or b.device != torch.device(device)):
+        raise ValueError(f"march out buffer: need a contiguous {dtype} vector of {'' if exact else '>= '}{n} "
+                         f"entries on {device}, got {b.dtype} {tuple(b.shape)} on {b.device}")
+
+
 def _sample_buffers(total: int, device, out) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """t0, t1 [total] float32 and ray_index [total] int32: fresh, or the first ``total`` entries
     of the buffers ``out(total)`` returns (checked: a wrong buffer would be written past its end)."""
@@ -252,10 +261,7 @@ def _sample_buffers(total: int, device, out) -> tuple[torch.Tensor, torch.Tensor
                 torch.empty(total, dtype=torch.float32, device=device),
                 torch.empty(total, dtype=torch.int32, device=device))
     for b, dt in zip(bufs, (torch.float32, torch.float32, torch.int32)):
-        if (b.dtype != dt or b.dim() != 1 or b.shape[0] < total or not b.is_contiguous()
-                or b.device != torch.device(device)):
-            raise ValueError(f"march out buffer: need a contiguous {dt} vector of >= {total} entries on "
-                             f"{device}, got {b.dtype} {tuple(b.shape)} on {b.device}")
+        _check_out(b, dt, total, device, exact=False)
     return tuple(b[:total] for b in bufs)
 
 
@@ -439,9 +445,7 @@ def march_rays_capped(
     cap = int(t0.shape[0])
     for b, dt, n in ((offsets, torch.int32, R), (counts, torch.int32, R), (total, torch.int32, 1), (t0, torch.float32, cap),
                      (t1, torch.float32, cap), (ray_index, torch.int32, cap)):
-        if b.dtype != dt or b.dim() != 1 or b.shape[0] != n or not b.is_contiguous() or b.device != dev:
-            raise ValueError(f"march out buffer: need a contiguous {dt} vector of {n} entries on {dev}, "
-                             f"got {b.dtype} {tuple(b.shape)} on {b.device}")
+        _check_out(b, dt, n, dev, exact=True)
     if R == 0:
         total.zero_()
         return

@@ -177,7 +177,7 @@ def test_shared_inputs_are_fixed_per_layout_and_not_copied_again():
     from fastneus.train.graphstep import StepGraphs
 
     g = object.__new__(StepGraphs)
-    g._inputs, g._shared = {}, set()
+    g._inputs = {}
     gen = torch.Generator().manual_seed(3)
 
     def batch(n):
@@ -193,7 +193,8 @@ def test_shared_inputs_are_fixed_per_layout_and_not_copied_again():
     assert b3["origins"].data_ptr() != b1["origins"].data_ptr() and len(g._inputs) == 2
     smp = march_samples(torch.ones(8 ** 3, dtype=torch.uint8), 8, b2["origins"] * 0.2,
                         torch.nn.functional.normalize(b2["dirs"] - 0.5, dim=-1), load_config("cpu-quick"))
-    e = _Entry(b2, x2, sample_bucket(smp["n_samples"]), shared=b2["origins"].data_ptr() in g._shared)
+    assert g._from_inputs(b2) and g._from_inputs(b3) and not g._from_inputs(batch(64))
+    e = _Entry(b2, x2, sample_bucket(smp["n_samples"]), shared=g._from_inputs(b2))
     assert e.batch["rgb"].data_ptr() == b2["rgb"].data_ptr() and e.xr.data_ptr() == x2.data_ptr()
     e.load(b2, x2, smp)
     assert torch.equal(e.batch["rgb"], src["rgb"])

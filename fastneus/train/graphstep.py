@@ -147,7 +147,6 @@ class StepGraphs:
     _last: tuple | None = None  # (samples, rays) of the last step whose count is known on the host
     _lag: dict | None = None  # the capped steps' count read back (pinned host int, event)
     unsynced = 0  # replays planned without the march's host sync (capped)
-    _shared: frozenset = frozenset()  # (an instance gets a set)
 
     def __init__(self, trainer, console=None):
         self.device = trainer.device
@@ -158,7 +157,6 @@ class StepGraphs:
         self.captured = self.replayed = self.eager = self.evicted = 0
         self.captures: list[dict] = []  # each capture's step, key sizes and host seconds (run.json)
         self._inputs: dict = {}  # batch layout -> (batch, xr) fixed buffers (inputs)
-        self._shared: set = set()  # their origins' addresses
         trainer.field.enable_device_schedule()
         trainer.cos_dev = torch.ones((1,), device=self.device)  # the NeuS cos-anneal ratio, filled per step
         # the mask loss's weight: filled per step while loss.mask_start changes it
@@ -208,11 +206,14 @@ class StepGraphs:
         bufs = self._inputs.get(sig)
         if bufs is None:  # kept for the run: a graph reads them where it was recorded
             bufs = self._inputs[sig] = ({k: torch.empty_like(v) for k, v in batch.items()}, torch.empty_like(xr))
-            self._shared.add(bufs[0]["origins"].data_ptr())
         for k, v in batch.items():
             bufs[0][k].copy_(v)
         bufs[1].copy_(xr)
         return dict(bufs[0]), bufs[1]
+
+    def _from_inputs(self, batch: dict) -> bool:
+        """Whether ``batch`` is one of :meth:`inputs`' fixed buffer sets (an entry keeps those)."""
+        return any(batch["origins"] is b["origins"] for b, _ in getattr(self, "_inputs", {}).values())
 
     def march_out(self, tr, batch: dict, xr: torch.Tensor, p: float):
         """The ``out`` argument of this step's :func:`~fastneus.field.renderer.march_samples`:
@@ -230,15 +231,16 @@ class StepGraphs:
 
         return take
 
-    def _plan(self, tr, batch: dict, xr: torch.Tensor, s: int, p: float) -> tuple[tuple, _Entry | None]:
-        """This step's key and its entry (created for a key seen on the step before), or None:
-        a key not seen on the step before runs one eager step."""
+    def _plan(self, tr, batch: dict, xr: torch.Tensor, s: int, p: float,
+              create: bool = True) -> tuple[tuple, _Entry | None]:
+        """This step's key for ``s`` samples and its entry (with ``create``, made for a key seen on
+        the step before), or None: a key not seen on the step before runs one eager step."""
         capacity = self._capacity(tr, batch, s, p)
         key = self._key(tr, batch, capacity, p)
         e = self.cache.get(key)
-        if e is None and key == self._pending:
+        if e is None and create and key == self._pending:
             self._make_room()
-            e = _Entry(batch, xr, capacity, shared=batch["origins"].data_ptr() in self._shared)
+            e = _Entry(batch, xr, capacity, shared=self._from_inputs(batch))
             self.cache[key] = e
             while len(self.cache) > MAX_GRAPHS:
                 self.cache.popitem(last=False)
@@ -308,12 +310,8 @@ class StepGraphs:
         est = self._estimate(batch["origins"].shape[0])
         if est is None:
             return None
-        capacity = self._capacity(tr, batch, est, p)
-        key = self._key(tr, batch, capacity, p)
-        e = self.cache.get(key)
-        if e is None or e.graph is None:
-            return None
-        return key, e
+        key, e = self._plan(tr, batch, xr, est, p, create=False)
+        return None if e is None or e.graph is None else (key, e)
 
     def run_capped(self, tr, key: tuple, e: _Entry, p: float) -> dict:
         """Replay ``e``'s graph after the capped march wrote into its buffers (no host sync), and
@@ -378,7 +376,7 @@ class StepGraphs:
         graph at 2^18 samples) outlived the run until Python's cycle collector freed the trainer,
         so a second scene trained in the same process (the Python API in a loop, quality.py)
         found the GPU full: the H100 ran out of memory in the third 10-s run."""
-        self._inputs, self._shared = {}, set()
+        self._inputs = {}
         if not self.cache:
             return
         self.cache.clear()

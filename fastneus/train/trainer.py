@@ -635,27 +635,23 @@ class Trainer:
         # a few uniform points for the eikonal term so the far field stays an SDF; they go through
         # the field in the same call as the samples (one hash + MLP pass instead of two)
         xr = torch.rand(max(256, n // 4), 3, device=self.device, generator=self.gen) * 2 - 1
+        capped = None
         if graphs is not None:  # into the graphs' fixed input buffers before the march's host sync
             batch, xr = graphs.inputs(batch, xr)
+            # a key planned from the last sample count read back: the march writes into its graph's
+            # buffers and the replay follows with no host sync (graphstep.StepGraphs.capped)
             capped = graphs.capped(self, batch, xr, p)
-            if capped is not None:
-                # the graph's key planned from the last sample count read back: the march writes into
-                # its buffers and the replay follows with no host sync (graphstep.StepGraphs.capped)
-                key, e = capped
-                march_samples_capped(self.grid.bits, self.grid.resolution, batch["origins"], batch["dirs"], c,
-                                     e.capped_buffers(), stop=self.grid.stop)
-                s = graphs.samples_estimate(n)
-                self.n_rays = self._next_ray_count(n, s)
-                rec = graphs.run_capped(self, key, e, p)
-                self.rig.fix_gauge()
-                self.step += 1
-                rec["spr"], rec["samples"] = s / n, s
-                return rec
-        # a replayed step's samples go straight into its graph's fixed buffers (graphs.march_out)
-        smp = march_samples(self.grid.bits, self.grid.resolution, batch["origins"], batch["dirs"], c, jitter=True,
-                            stop=self.grid.stop, out=None if graphs is None else graphs.march_out(self, batch, xr, p))
-        s = smp["n_samples"]
-        # adapt the ray count to the sample budget (s is known on the host from marching)
+        if capped is not None:
+            march_samples_capped(self.grid.bits, self.grid.resolution, batch["origins"], batch["dirs"], c,
+                                 capped[1].capped_buffers(), stop=self.grid.stop)
+            s = graphs.samples_estimate(n)
+        else:
+            # a replayed step's samples go straight into its graph's fixed buffers (graphs.march_out)
+            smp = march_samples(self.grid.bits, self.grid.resolution, batch["origins"], batch["dirs"], c,
+                                jitter=True, stop=self.grid.stop,
+                                out=None if graphs is None else graphs.march_out(self, batch, xr, p))
+            s = smp["n_samples"]  # known on the host from marching
+        # adapt the ray count to the sample budget
         self.n_rays = self._next_ray_count(n, s)
         if s == 0:
             # an empty grid would stall training for good: re-open it after a few empty steps
@@ -666,7 +662,9 @@ class Trainer:
             self.step += 1
             return None
         self.empty_steps = 0
-        if graphs is not None:
+        if capped is not None:
+            rec = graphs.run_capped(self, *capped, p)
+        elif graphs is not None:
             rec = graphs.step(self, batch, xr, smp, p)
         else:
             rec = self.compute(batch, xr, smp, p)
