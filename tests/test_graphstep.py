@@ -404,3 +404,61 @@ def test_a_step_that_does_not_fit_is_not_applied(small_scene, tmp_path):
     a.compute(e.batch, e.xr, e.smp, 0.5, valid=e.valid, device_adam=True, fits=e.fits)
     assert not all(torch.equal(x, y) for x, y in zip(before, _params(a)))
     assert int(a._overflow_dev) == 1
+
+
+def test_train_step_wires_a_capped_step(small_scene, tmp_path):
+    """Trainer.train_step with graphs that plan a capped step (CPU, a stand-in for StepGraphs):
+    the batch goes through inputs(), the capped march fills the planned entry's buffers, the
+    replay is asked for that (key, entry), and the step's record carries the estimated count;
+    with no plan the step counts on the host and goes to graphs.step."""
+    from fastneus.config import load_config
+    from fastneus.train.trainer import Trainer
+
+    cfg = load_config("cpu-quick", SMALL_RUN + ["threads=1", "cuda_graph=off"])
+    tr = Trainer(Scene.load(small_scene), cfg, tmp_path / "r", "cpu")
+    calls = []
+
+    class _G:
+        plan = True
+
+        def eligible(self, t, p):
+            return True
+
+        def ray_count(self, n):
+            return ray_bucket(n)
+
+        def inputs(self, batch, xr):
+            calls.append("inputs")
+            return batch, xr
+
+        def capped(self, t, batch, xr, p):
+            if not self.plan:
+                return None
+            n, cap = batch["origins"].shape[0], 4096
+            self.e = _Entry(batch, xr, cap)
+            return ("key", self.e)
+
+        def samples_estimate(self, n):
+            return 1234
+
+        def run_capped(self, t, key, e, p):
+            calls.append(("run_capped", key, e is self.e))
+            return {"loss": torch.zeros(())}
+
+        def march_out(self, t, batch, xr, p):
+            return None
+
+        def step(self, t, batch, xr, smp, p):
+            calls.append(("step", smp["n_samples"]))
+            return {"loss": torch.zeros(())}
+
+    g = tr.graphs = _G()
+    tr.update_grid(0.0)
+    rec = tr.train_step()
+    assert calls == ["inputs", ("run_capped", "key", True)]
+    assert rec["samples"] == 1234 and tr.step == 1
+    e = g.e
+    assert int(e.total) > 0 and int(e.smp["counts"].sum()) == min(int(e.total), e.capacity)
+    g.plan, calls[:] = False, []
+    tr.train_step()
+    assert calls[0] == "inputs" and calls[1][0] == "step" and calls[1][1] > 0 and tr.step == 2
