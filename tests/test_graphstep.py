@@ -119,12 +119,14 @@ def _in_place(e, smp, gen):
     return {**smp, "t0": t0[:s], "t1": t1[:s], "ray_index": ri[:s]}
 
 
-@pytest.mark.parametrize("extra", [[], ["curvature_weight=0.001"], ["hull=loss", "init_radius=0.95"], "in-place"])
+@pytest.mark.parametrize("extra", [[], ["curvature_weight=0.001"], ["hull=loss", "init_radius=0.95"], "in-place",
+                                   ["mask_loss=mixed"], "in-place mask_loss=sdf"])
 def test_padded_device_schedule_step_matches_the_eager_step(small_scene, tmp_path, extra):
     """The padded step against the eager one; ``in-place``: the samples written into the
     entry's buffers with earlier steps' samples left in the padding (not copied, not zeroed)."""
-    in_place = extra == "in-place"
-    a, b = _pair(small_scene, tmp_path, "cpu", [] if in_place else extra)
+    in_place = isinstance(extra, str)  # the padding's stale ray indices must not reach a ray's min SDF
+    a, b = _pair(small_scene, tmp_path, "cpu", extra.split()[1:] if in_place else extra)
+    assert a.masks_used
     a.opt._scal = torch.zeros(len(a.opt.param_groups), 2)
     gen = torch.Generator().manual_seed(5)
     for p in (0.1, 0.2, 0.5):  # coarse-to-fine still opening levels at the first two
@@ -204,7 +206,7 @@ def test_shared_inputs_are_fixed_per_layout_and_not_copied_again():
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="CUDA graphs need a CUDA device")
 @pytest.mark.parametrize("extra", [[], ["hull=bound"], ["mask_start=on", "mask_weight_start=0.8", "mask_start_frac=0.3"],
-                                   "train-step path"])
+                                   ["mask_loss=mixed"], "train-step path"])
 def test_cuda_replayed_graph_matches_the_eager_step(tmp_path, extra):
     """Graph steps (first: eager on the side stream + capture; then replays) against eager
     steps on the same inputs: the same loss and parameters after every step. The scene is

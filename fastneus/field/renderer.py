@@ -112,15 +112,38 @@ def render_rays(field, bits: torch.Tensor, grid_res: int, proj, origins: torch.T
                          extra_points=extra_points)
 
 
+def ray_min(values: torch.Tensor, ri: torch.Tensor, offsets: torch.Tensor, counts: torch.Tensor,
+            n: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Each ray's smallest value over its samples, differentiable (the gradient goes to the
+    sample that is the minimum). Samples outside every ray's ``[offsets, offsets + counts)``
+    (a captured step's padding, whose ray index is stale) are left out, with no host read.
+
+    Args:
+        values: [S]; ri: [S] int64 ray of each sample; offsets, counts: [n] int32; n: rays.
+    Returns:
+        ([n] the minimum, 0 for a ray without samples; [n] float, 1 where the ray has samples).
+    """
+    i = torch.arange(values.shape[0], device=values.device)
+    lo = offsets.long()[ri]
+    live = (i >= lo) & (i < lo + counts.long()[ri])
+    big = torch.finfo(values.dtype).max
+    m = torch.full((n,), big, device=values.device, dtype=values.dtype)
+    m = m.scatter_reduce(0, ri, torch.where(live, values, big), "amin", include_self=True)
+    has = (counts > 0).to(values.dtype)
+    return torch.where(counts > 0, m, torch.zeros_like(m)), has
+
+
 def shade_samples(field, smp: dict, proj, origins: torch.Tensor, dirs: torch.Tensor, fidx: torch.Tensor, cfg, *,
                   i_r: torch.Tensor, i_b: torch.Tensor, cos_anneal: float, with_normals: bool = False,
                   curvature: bool = False, use_pattern: bool | None = None,
                   extra_points: torch.Tensor | None = None, lit: bool = False,
-                  canonical_view: bool = False) -> dict:
+                  canonical_view: bool = False, min_sdf: bool = False) -> dict:
     """The field at the samples of :func:`march_samples` and their NeuS compositing with the
     projected light (arguments and result as :func:`render_rays`; ``lit``: also ``lit`` [B],
     the projected light (summed over channels and projectors) at each ray's rendered surface,
-    weighted like its colour, without gradient).
+    weighted like its colour, without gradient; ``min_sdf``: also ``min_sdf`` [B], each ray's smallest
+    SDF over its samples, with gradient, and ``has_samples`` [B] float, 0 for a ray with none,
+    whose ``min_sdf`` is 0).
 
     The sample arrays may be longer than the rays use (a captured step's fixed-capacity
     buffers): samples past every ray's ``offsets + counts`` are evaluated but composite into no
@@ -136,6 +159,8 @@ def shade_samples(field, smp: dict, proj, origins: torch.Tensor, dirs: torch.Ten
         if extra_points is not None:
             f_extra, _, res["grad_all"], _ = field.sdf_and_grad(extra_points)
             res["sdf_extra"] = f_extra.reshape(-1)
+        if min_sdf:
+            res["min_sdf"], res["has_samples"] = torch.zeros(n, device=device), torch.zeros(n, device=device)
         return res
     ri = ray_index.long()
     d_s = dirs[ri]
@@ -200,6 +225,8 @@ def shade_samples(field, smp: dict, proj, origins: torch.Tensor, dirs: torch.Ten
     res["grad"], res["curv"], res["n_samples"] = grad, curv, smp["n_samples"]
     if extra_points is not None:
         res["grad_all"], res["sdf_extra"] = grad_all, sdf_extra
+    if min_sdf:
+        res["min_sdf"], res["has_samples"] = ray_min(sdf.reshape(-1), ri, offsets, counts, n)
     if with_normals:
         w = res["weights"].detach()
         nrm = grad.detach() / grad.detach().norm(dim=-1, keepdim=True).clamp_min(1e-6)

@@ -110,6 +110,35 @@ def mask_bce(opacity: torch.Tensor, mask: torch.Tensor, weight: float | torch.Te
     return {"mask": weight * torch.nn.functional.binary_cross_entropy(op, mask)}
 
 
+def mask_silhouette(min_sdf: torch.Tensor, has: torch.Tensor, opacity: torch.Tensor, mask: torch.Tensor,
+                    weight: float | torch.Tensor, inv_s: torch.Tensor, kind: str) -> dict[str, torch.Tensor]:
+    """The mask as a statement about where rays cross the surface, not about their opacity.
+
+    A mask pixel's ray must enter the object somewhere (its smallest SDF along the ray is
+    negative), a background pixel's ray must not (positive): ``inv_s * relu(min_sdf)`` and
+    ``inv_s * relu(-min_sdf)``, zero once the ray is on the right side. The BCE on the opacity
+    asks a grazing ray inside the silhouette for full opacity, which NeuS gives a short chord
+    only at infinite sharpness: it pulls the surface outwards there (docs/benchmarks/mask-weight.md,
+    "the inner outline"). ``inv_s`` (detached) makes the penalty the asymptote of the BCE on the
+    wrong side (-log sigmoid(-s m) ~ s m), so the two pull alike where a part is missing.
+
+    Args:
+        min_sdf: [B] the smallest SDF over each ray's samples (0 where ``has`` is 0);
+        has: [B] 1 where the ray has samples; opacity: [B]; mask: [B] in {0, 1};
+        weight: the scheduled mask weight; inv_s: NeuS's sharpness (0-d);
+        kind: ``sdf`` (both sides by the SDF) or ``mixed`` (mask pixels by the SDF, background
+            pixels by the BCE on the opacity: nothing semi-transparent outside the silhouette).
+    """
+    s = inv_s.detach().reshape(())
+    inside = mask * torch.relu(min_sdf) * has
+    if kind == "sdf":
+        r = (inside + (1.0 - mask) * torch.relu(-min_sdf) * has).mean() * s
+    else:
+        op = opacity.clamp(max=1 - 1e-3)
+        r = inside.mean() * s - ((1.0 - mask) * torch.log1p(-op)).mean()
+    return {"mask": weight * r}
+
+
 def background_free_space(opacity: torch.Tensor, is_bg: torch.Tensor, weight: float) -> dict[str, torch.Tensor]:
     """One-sided prior without masks: background-coloured pixels are pushed to zero opacity,
     the others are free.

@@ -733,7 +733,8 @@ class Trainer:
         cos = self.cos_dev if capturing else self.cos_anneal(p)
         out = shade_samples(self.field, smp, self.rig.projection(), batch["origins"], batch["dirs"], batch["fidx"], c,
                             i_r=i_r, i_b=i_b, cos_anneal=cos, curvature=c.loss.curvature_weight > 0,
-                            extra_points=xr, lit=bg_on and self.bg_lit)
+                            extra_points=xr, lit=bg_on and self.bg_lit,
+                            min_sdf=self.masks_used and c.loss.mask_loss != "bce" and "mask" in batch)
         # the camera clips at 1: a rendered value above it is a saturated pixel, not an error
         # (unclipped, bright pattern pixels would pull i_r down on Normal-light scenes)
         # [B, 3], or [B, K, 3] with K shots per ray (multi-shot); + water (fastneus.train.rig)
@@ -751,7 +752,18 @@ class Trainer:
         # eikonal on the samples plus the uniform points (evaluated with them in shade_samples)
         terms |= losses.eikonal(out["grad_all"], c.loss.eikonal_weight, valid=valid)
         if self.masks_used and "mask" in batch:
-            terms |= losses.mask_bce(opacity, batch["mask"], self.mask_w_dev if capturing else self.mask_weight_at(p))
+            mw = self.mask_w_dev if capturing else self.mask_weight_at(p)
+            if c.loss.mask_loss == "bce":
+                terms |= losses.mask_bce(opacity, batch["mask"], mw)
+            else:
+                m, has = out["min_sdf"], out["has_samples"]
+                if self.blur_sub > 1:  # a pixel's rays: the pixel enters the object if any of them does
+                    big = torch.finfo(m.dtype).max
+                    has = has.view(-1, self.blur_sub).amax(1)
+                    m = torch.where(has > 0, torch.where(out["has_samples"] > 0, m, big).view(-1, self.blur_sub).amin(1),
+                                    torch.zeros_like(has))
+                terms |= losses.mask_silhouette(m, has, opacity, batch["mask"], mw, self.field.inv_s(),
+                                                c.loss.mask_loss)
         elif bg_on:
             ramp = losses.background_ramp(p, c.loss.bg_start_frac)
             is_bg = batch["bg"]
