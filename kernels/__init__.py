@@ -17,6 +17,7 @@ _OPS = {
     "march_rays_capped": "occupancy",
     "occupancy_alpha": "occupancy",
     "render_pattern": "render",
+    "ray_argmin": "render",
     "project_pattern": "project",
     "laser_light": "project",
     "raycast_mesh": "raycast",

@@ -750,3 +750,63 @@ def render_pattern_torch(
     if return_weights:
         res["weights"] = w.detach()
     return res
+
+
+# ----------------------------------------------------------------------------------------
+# Each ray's smallest sample (the mask's silhouette term, fastneus.train.losses.mask_silhouette)
+# ----------------------------------------------------------------------------------------
+@wp.kernel
+def _ray_argmin(values: wp.array(dtype=float), offsets: wp.array(dtype=wp.int32), counts: wp.array(dtype=wp.int32),
+                arg: wp.array(dtype=wp.int32)):
+    r = wp.tid()
+    a = int(offsets[r])
+    best = float(0.0)
+    bi = int(-1)
+    for i in range(a, a + int(counts[r])):
+        v = values[i]
+        if bi < 0 or v < best:
+            best = v
+            bi = i
+    arg[r] = wp.int32(bi)
+
+
+def ray_argmin(values: torch.Tensor, ray_index: torch.Tensor, offsets: torch.Tensor,
+               counts: torch.Tensor) -> torch.Tensor:
+    """Index of each ray's smallest value over its samples (Warp, one thread per ray).
+
+    Only the samples ``offsets[r] .. offsets[r] + counts[r]`` of each ray are read, so samples
+    past every ray (a captured step's padding, whose ``ray_index`` is stale) are left out; the
+    first of equal values wins. Not differentiable (an index); no host synchronisation.
+
+    Args:
+        values: [S] float32; ray_index: [S] int32 (unused here: the common signature with the
+            twin); offsets, counts: [R] int32, samples packed by ray.
+    Returns:
+        [R] int32: the sample index of each ray's minimum, -1 for a ray without samples.
+    """
+    v, o, c = _f32(values.detach()), _i32(offsets), _i32(counts)
+    arg = torch.empty(o.shape[0], dtype=torch.int32, device=v.device)
+    _warp.launch_chunked(_ray_argmin, [_wp(v), _wp(o), _wp(c)], [_wp(arg)], v,
+                         _warp.ray_ranges(o, int(v.shape[0]), v, MIN_CHUNK_SAMPLES),
+                         sliced_in={1: (o, None), 2: (c, None)}, sliced_out={0: (arg, None)})
+    return arg
+
+
+def ray_argmin_torch(values: torch.Tensor, ray_index: torch.Tensor, offsets: torch.Tensor,
+                     counts: torch.Tensor) -> torch.Tensor:
+    """Pure-torch twin of :func:`ray_argmin` (same arguments and result): the minimum by a
+    scatter over ``ray_index`` with the samples outside their ray's range left out, then the
+    first sample that equals it."""
+    v = values.detach().float()
+    S, R, dev = v.shape[0], offsets.shape[0], v.device
+    if S == 0:
+        return torch.full((R,), -1, dtype=torch.int32, device=dev)
+    ri = ray_index.long()
+    i = torch.arange(S, device=dev)
+    lo = offsets.long()[ri]
+    live = (i >= lo) & (i < lo + counts.long()[ri])
+    big = torch.finfo(torch.float32).max
+    m = torch.full((R,), big, device=dev).scatter_reduce(0, ri, torch.where(live, v, big), "amin", include_self=True)
+    first = torch.where(live & (v == m[ri]), i, S)
+    arg = torch.full((R,), S, device=dev, dtype=torch.long).scatter_reduce(0, ri, first, "amin", include_self=True)
+    return torch.where((counts > 0) & (arg < S), arg, -1).to(torch.int32)

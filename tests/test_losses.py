@@ -39,34 +39,42 @@ DEVICES = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
 
 
 @pytest.mark.parametrize("device", DEVICES)
-def test_ray_min_matches_a_loop_and_leaves_out_the_padding(device):
-    """renderer.ray_min against a per-ray loop on fresh random rays (some without samples), with
-    padding samples past every ray whose stale ray index points at real rays and whose value is
-    below all others; the gradient reaches exactly each ray's minimum sample."""
+@pytest.mark.parametrize("backend", ["warp", "torch"])
+def test_ray_min_matches_a_loop_and_leaves_out_the_padding(device, backend):
+    """renderer.ray_min (the ray_argmin op of either backend, then a gather) against a per-ray
+    loop on fresh random rays (some without samples, some with equal values), with padding
+    samples past every ray whose stale ray index points at real rays and whose value is below
+    all others; the gradient reaches exactly each ray's minimum sample (the first of equals)."""
     from fastneus.field.renderer import ray_min
+    from fastneus.kernels import get_op
 
     g = torch.Generator().manual_seed(int(torch.randint(0, 2**31 - 1, (1,))))
-    n = 50
-    counts = torch.randint(0, 6, (n,), generator=g, dtype=torch.int32)
+    n = 300
+    counts = torch.randint(0, 9, (n,), generator=g, dtype=torch.int32)
     offsets = (torch.cumsum(counts, 0) - counts).to(torch.int32)
     live = int(counts.sum())
     pad = 17
-    ri = torch.cat([torch.repeat_interleave(torch.arange(n), counts.long()), torch.randint(0, n, (pad,), generator=g)])
-    v = torch.cat([torch.randn(live, generator=g), torch.full((pad,), -50.0)])
-    v = v.to(device).requires_grad_()
-    m, has = ray_min(v, ri.to(device), offsets.to(device), counts.to(device), n)
+    ri = torch.cat([torch.repeat_interleave(torch.arange(n), counts.long()),
+                    torch.randint(0, n, (pad,), generator=g)]).to(torch.int32)
+    v = torch.cat([torch.randint(-20, 20, (live,), generator=g).float() / 4, torch.full((pad,), -50.0)])
+    args = (ri.to(device), offsets.to(device), counts.to(device))
+    vd = v.to(device, copy=True).requires_grad_()
+    m, has = ray_min(vd, *args, backend=backend)
     m.sum().backward()
-    m = m.detach()
+    m = m.detach().cpu()
     want_grad = torch.zeros(live + pad)
     for r in range(n):
         a, c = int(offsets[r]), int(counts[r])
         if c == 0:
             assert float(m[r]) == 0.0 and float(has[r]) == 0.0
             continue
-        seg = v.detach().cpu()[a:a + c]
+        seg = v[a:a + c]
         assert float(m[r]) == float(seg.min()) and float(has[r]) == 1.0
-        want_grad[a + int(seg.argmin())] = 1.0
-    assert torch.equal(v.grad.cpu(), want_grad)
+        want_grad[a + int((seg == seg.min()).nonzero()[0])] = 1.0
+    assert torch.equal(vd.grad.cpu(), want_grad)
+    # the two backends' indices agree exactly
+    assert torch.equal(get_op("ray_argmin", "warp")(v.to(device), *args),
+                       get_op("ray_argmin", "torch")(v.to(device), *args))
 
 
 def test_mask_silhouette_pulls_only_rays_on_the_wrong_side():

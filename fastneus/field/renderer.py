@@ -112,25 +112,22 @@ def render_rays(field, bits: torch.Tensor, grid_res: int, proj, origins: torch.T
                          extra_points=extra_points)
 
 
-def ray_min(values: torch.Tensor, ri: torch.Tensor, offsets: torch.Tensor, counts: torch.Tensor,
-            n: int) -> tuple[torch.Tensor, torch.Tensor]:
+def ray_min(values: torch.Tensor, ray_index: torch.Tensor, offsets: torch.Tensor, counts: torch.Tensor,
+            backend: str = "warp") -> tuple[torch.Tensor, torch.Tensor]:
     """Each ray's smallest value over its samples, differentiable (the gradient goes to the
-    sample that is the minimum). Samples outside every ray's ``[offsets, offsets + counts)``
-    (a captured step's padding, whose ray index is stale) are left out, with no host read.
+    sample that is the minimum: the first of equal ones). Samples outside every ray's
+    ``[offsets, offsets + counts)`` (a captured step's padding, whose ray index is stale) are
+    left out, with no host read (the index from the ``ray_argmin`` op, then a gather).
 
     Args:
-        values: [S]; ri: [S] int64 ray of each sample; offsets, counts: [n] int32; n: rays.
+        values: [S]; ray_index: [S] int32 ray of each sample; offsets, counts: [R] int32.
     Returns:
-        ([n] the minimum, 0 for a ray without samples; [n] float, 1 where the ray has samples).
+        ([R] the minimum, 0 for a ray without samples; [R] float, 1 where the ray has samples).
     """
-    i = torch.arange(values.shape[0], device=values.device)
-    lo = offsets.long()[ri]
-    live = (i >= lo) & (i < lo + counts.long()[ri])
-    big = torch.finfo(values.dtype).max
-    m = torch.full((n,), big, device=values.device, dtype=values.dtype)
-    m = m.scatter_reduce(0, ri, torch.where(live, values, big), "amin", include_self=True)
-    has = (counts > 0).to(values.dtype)
-    return torch.where(counts > 0, m, torch.zeros_like(m)), has
+    arg = get_op("ray_argmin", backend)(values, ray_index, offsets, counts).long()
+    has = arg >= 0
+    m = values[arg.clamp_min(0)] if values.shape[0] else torch.zeros(arg.shape, device=values.device)
+    return torch.where(has, m, torch.zeros_like(m)), has.to(values.dtype)
 
 
 def shade_samples(field, smp: dict, proj, origins: torch.Tensor, dirs: torch.Tensor, fidx: torch.Tensor, cfg, *,
@@ -226,7 +223,7 @@ def shade_samples(field, smp: dict, proj, origins: torch.Tensor, dirs: torch.Ten
     if extra_points is not None:
         res["grad_all"], res["sdf_extra"] = grad_all, sdf_extra
     if min_sdf:
-        res["min_sdf"], res["has_samples"] = ray_min(sdf.reshape(-1), ri, offsets, counts, n)
+        res["min_sdf"], res["has_samples"] = ray_min(sdf.reshape(-1), ray_index, offsets, counts, cfg.run.backend)
     if with_normals:
         w = res["weights"].detach()
         nrm = grad.detach() / grad.detach().norm(dim=-1, keepdim=True).clamp_min(1e-6)
