@@ -220,11 +220,13 @@ class LossSection:
     eikonal_weight: float = knob(0.1, "eikonal term weight (0 = off)", lo=0.0)
     masks: str = knob("auto", "mask BCE: auto (on when every training frame has a mask) | on | off",
                       choices=("auto", "on", "off"))
-    mask_weight: float = knob(0.1, "mask BCE weight (0 = off)", lo=0.0)
+    mask_weight: float = knob(0.1, "mask term weight (mask_loss; 0 = off)", lo=0.0)
     mask_loss: str = knob("bce", "how a mask pulls: bce (the rendered opacity against the mask) | sdf (a mask "
                           "pixel's ray must enter the object, a background pixel's must not: the smallest SDF along "
                           "the ray, no pull once on the right side) | mixed (sdf for mask pixels, bce for background "
-                          "pixels)", choices=("bce", "sdf", "mixed"))
+                          "pixels: the GPU preset's, H200 10 s rock Dark 7.40 -> 5.72 mm, the thin-legged ant 2.75 "
+                          "-> 3.09; the CPU preset keeps bce, with which its 128-px realistic ant keeps its legs)",
+                          choices=("bce", "sdf", "mixed"))
     mask_start: str = knob("auto", "a stronger mask weight early in the run (mask_weight_start, falling to "
                            "mask_weight at mask_start_frac): thin parts a blurred photo barely shows are held by the "
                            "masks while the shape forms, the photos have the last word. auto: with masks in a lit "
