@@ -227,6 +227,8 @@ class LossSection:
                           "pixels: the GPU preset's, H200 10 s rock Dark 7.40 -> 5.72 mm, the thin-legged ant 2.75 "
                           "-> 3.09; the CPU preset keeps bce, with which its 128-px realistic ant keeps its legs)",
                           choices=("bce", "sdf", "mixed"))
+    mask_sdf_from: float = knob(0.0, "mask_loss sdf / mixed act from this fraction of the run, the BCE before it "
+                                "(0 = from the start)", **FRAC)
     mask_start: str = knob("auto", "a stronger mask weight early in the run (mask_weight_start, falling to "
                            "mask_weight at mask_start_frac): thin parts a blurred photo barely shows are held by the "
                            "masks while the shape forms, the photos have the last word. auto: with masks in a lit "

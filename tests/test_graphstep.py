@@ -30,6 +30,32 @@ def test_buckets_hold_the_count_and_are_few():
     assert len({ray_bucket(n) for n in range(730, 790)}) <= 2
 
 
+def test_the_mask_form_switches_at_its_fraction_and_keys_the_graphs():
+    """mask_sdf_from: the BCE before the fraction, mask_loss after it; the captured graphs' key
+    differs across the switch, so a graph recorded with one form never replays the other."""
+    from fastneus.train.graphstep import StepGraphs
+    from fastneus.train.trainer import Trainer
+
+    class _T:
+        cfg = load_config("fewview", ["mask_sdf_from=0.4"])
+
+        def mask_form(self, p):
+            return Trainer.mask_form(self, p)
+
+        @staticmethod
+        def photo_priors(p):
+            return False, False
+
+    t = _T()
+    assert t.cfg.loss.mask_loss == "mixed"  # the GPU preset's
+    assert [t.mask_form(p) for p in (0.0, 0.39, 0.4, 0.9)] == ["bce", "bce", "mixed", "mixed"]
+    assert load_config("cpu-quick").loss.mask_loss == "bce"
+    g = StepGraphs.__new__(StepGraphs)
+    batch = {"origins": torch.zeros(768, 3), "dirs": torch.zeros(768, 3)}
+    assert g._key(t, batch, 1000, 0.3) != g._key(t, batch, 1000, 0.5)
+    assert g._key(t, batch, 1000, 0.5) == g._key(t, batch, 1000, 0.8)
+
+
 def test_ray_count_and_capacity_stay_put_under_jitter():
     """The adaptive ray count and the march's sample count jitter by a few % per step: the
     captured step's ray count and sample capacity must not hop between graphs with them."""
@@ -47,6 +73,10 @@ def test_ray_count_and_capacity_stay_put_under_jitter():
         @staticmethod
         def photo_priors(p):
             return False, False
+
+        @staticmethod
+        def mask_form(p):
+            return "bce"
 
     batch = {"origins": torch.zeros(768, 3), "dirs": torch.zeros(768, 3)}
     cap = g._capacity(_T, batch, 250_000, 0.5)
@@ -332,6 +362,10 @@ def test_a_key_is_captured_only_when_the_next_step_repeats_it():
             return False, False
 
         @staticmethod
+        def mask_form(p):
+            return "bce"
+
+        @staticmethod
         def compute(batch, xr, smp, p, valid=None, device_adam=False):
             calls.append((batch["origins"].shape[0], smp["n_samples"], valid, device_adam))
             return {"loss": torch.zeros(())}
@@ -366,6 +400,10 @@ def test_capped_plan_uses_a_captured_graph_with_room_for_the_estimate():
         @staticmethod
         def photo_priors(p):
             return False, False
+
+        @staticmethod
+        def mask_form(p):
+            return "bce"
 
     batch = {"origins": torch.zeros(1024, 3), "dirs": torch.zeros(1024, 3)}
     assert g.capped(_T, batch, None, 0.5) is None  # nothing known yet

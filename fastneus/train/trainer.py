@@ -312,6 +312,12 @@ class Trainer:
         if self._skipped_dev is not None:
             self._skipped_dev.zero_()
 
+    def mask_form(self, p: float) -> str:
+        """The mask term's form at progress ``p``: ``loss.mask_loss``, or ``bce`` before
+        ``loss.mask_sdf_from``. The step's losses and the captured graphs' key both read this."""
+        c = self.cfg.loss
+        return c.mask_loss if p >= c.mask_sdf_from else "bce"
+
     def photo_priors(self, p: float) -> tuple[bool, bool]:
         """(background prior, foreground prior) acting at progress ``p`` (no masks; each from its
         start fraction). The step's losses and the captured graphs' key both read this."""
@@ -734,7 +740,7 @@ class Trainer:
         out = shade_samples(self.field, smp, self.rig.projection(), batch["origins"], batch["dirs"], batch["fidx"], c,
                             i_r=i_r, i_b=i_b, cos_anneal=cos, curvature=c.loss.curvature_weight > 0,
                             extra_points=xr, lit=bg_on and self.bg_lit,
-                            min_sdf=self.masks_used and c.loss.mask_loss != "bce" and "mask" in batch)
+                            min_sdf=self.masks_used and self.mask_form(p) != "bce" and "mask" in batch)
         # the camera clips at 1: a rendered value above it is a saturated pixel, not an error
         # (unclipped, bright pattern pixels would pull i_r down on Normal-light scenes)
         # [B, 3], or [B, K, 3] with K shots per ray (multi-shot); + water (fastneus.train.rig)
@@ -753,7 +759,8 @@ class Trainer:
         terms |= losses.eikonal(out["grad_all"], c.loss.eikonal_weight, valid=valid)
         if self.masks_used and "mask" in batch:
             mw = self.mask_w_dev if capturing else self.mask_weight_at(p)
-            if c.loss.mask_loss == "bce":
+            form = self.mask_form(p)
+            if form == "bce":
                 terms |= losses.mask_bce(opacity, batch["mask"], mw)
             else:
                 m, has = out["min_sdf"], out["has_samples"]
@@ -762,8 +769,7 @@ class Trainer:
                     has = has.view(-1, self.blur_sub).amax(1)
                     m = torch.where(has > 0, torch.where(out["has_samples"] > 0, m, big).view(-1, self.blur_sub).amin(1),
                                     torch.zeros_like(has))
-                terms |= losses.mask_silhouette(m, has, opacity, batch["mask"], mw, self.field.inv_s(),
-                                                c.loss.mask_loss)
+                terms |= losses.mask_silhouette(m, has, opacity, batch["mask"], mw, self.field.inv_s(), form)
         elif bg_on:
             ramp = losses.background_ramp(p, c.loss.bg_start_frac)
             is_bg = batch["bg"]
