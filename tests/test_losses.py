@@ -200,3 +200,18 @@ def test_mask_start_is_chosen_in_a_lit_room_printed_and_saved(tmp_path, lit_and_
     assert tr.masks_used and tr.mask_start_used is used
     assert ("(mask_start)" in tr.masks_note) is used
     assert tr.mask_weight_at(0.0) == pytest.approx(0.3 if used else 0.1)
+
+
+def test_pixel_min_sdf_takes_the_smallest_of_a_pixels_rays():
+    """With blur_sub rays per pixel: the pixel's minimum over its rays that have samples; a
+    pixel none of whose rays has samples gets 0 and no samples."""
+    from types import SimpleNamespace
+
+    from fastneus.train.trainer import Trainer
+
+    out = {"min_sdf": torch.tensor([0.3, -0.1, 0.0, 0.2, 0.0, 0.0]),
+           "has_samples": torch.tensor([1.0, 1.0, 0.0, 1.0, 0.0, 0.0])}
+    m, has = Trainer._pixel_min_sdf(SimpleNamespace(blur_sub=2), out)
+    assert m.tolist() == pytest.approx([-0.1, 0.2, 0.0]) and has.tolist() == [1.0, 1.0, 0.0]
+    m1, has1 = Trainer._pixel_min_sdf(SimpleNamespace(blur_sub=1), out)
+    assert m1 is out["min_sdf"] and has1 is out["has_samples"]

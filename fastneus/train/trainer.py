@@ -312,6 +312,17 @@ class Trainer:
         if self._skipped_dev is not None:
             self._skipped_dev.zero_()
 
+    def _pixel_min_sdf(self, out: dict) -> tuple[torch.Tensor, torch.Tensor]:
+        """Each training pixel's smallest SDF along its rays and whether it has samples ([B], [B]):
+        with blur_sub rays per pixel, the pixel enters the object if any of its rays does."""
+        m, has = out["min_sdf"], out["has_samples"]
+        if self.blur_sub > 1:
+            big = torch.finfo(m.dtype).max
+            hp = has.view(-1, self.blur_sub).amax(1)
+            mp = torch.where(has > 0, m, big).view(-1, self.blur_sub).amin(1)
+            return torch.where(hp > 0, mp, torch.zeros_like(hp)), hp
+        return m, has
+
     def mask_form(self, p: float) -> str:
         """The mask term's form at progress ``p``: ``loss.mask_loss``, or ``bce`` before
         ``loss.mask_sdf_from``. The step's losses and the captured graphs' key both read this."""
@@ -763,12 +774,7 @@ class Trainer:
             if form == "bce":
                 terms |= losses.mask_bce(opacity, batch["mask"], mw)
             else:
-                m, has = out["min_sdf"], out["has_samples"]
-                if self.blur_sub > 1:  # a pixel's rays: the pixel enters the object if any of them does
-                    big = torch.finfo(m.dtype).max
-                    has = has.view(-1, self.blur_sub).amax(1)
-                    m = torch.where(has > 0, torch.where(out["has_samples"] > 0, m, big).view(-1, self.blur_sub).amin(1),
-                                    torch.zeros_like(has))
+                m, has = self._pixel_min_sdf(out)
                 terms |= losses.mask_silhouette(m, has, opacity, batch["mask"], mw, self.field.inv_s(), form)
         elif bg_on:
             ramp = losses.background_ramp(p, c.loss.bg_start_frac)
