@@ -40,7 +40,8 @@ DEVICES = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
 
 @pytest.mark.parametrize("device", DEVICES)
 @pytest.mark.parametrize("backend", ["warp", "torch"])
-def test_ray_min_matches_a_loop_and_leaves_out_the_padding(device, backend):
+@pytest.mark.parametrize("n", [300, 6000])  # 6000 rays (~24 k samples): the CPU launch is split in chunks
+def test_ray_min_matches_a_loop_and_leaves_out_the_padding(device, backend, n):
     """renderer.ray_min (the ray_argmin op of either backend, then a gather) against a per-ray
     loop on fresh random rays (some without samples, some with equal values), with padding
     samples past every ray whose stale ray index points at real rays and whose value is below
@@ -49,7 +50,6 @@ def test_ray_min_matches_a_loop_and_leaves_out_the_padding(device, backend):
     from fastneus.kernels import get_op
 
     g = torch.Generator().manual_seed(int(torch.randint(0, 2**31 - 1, (1,))))
-    n = 300
     counts = torch.randint(0, 9, (n,), generator=g, dtype=torch.int32)
     offsets = (torch.cumsum(counts, 0) - counts).to(torch.int32)
     live = int(counts.sum())
