@@ -202,6 +202,21 @@ def test_mask_start_is_chosen_in_a_lit_room_printed_and_saved(tmp_path, lit_and_
     assert tr.mask_weight_at(0.0) == pytest.approx(0.3 if used else 0.1)
 
 
+@pytest.mark.parametrize("extra, note", [([], None), (["mask_loss=mixed"], "(mask_loss=mixed, background pixels by opacity)"),
+                                         (["mask_loss=sdf", "mask_sdf_from=0.5"], "SDF from 50% of the run (mask_loss=sdf)")])
+def test_the_mask_terms_form_is_in_the_masks_note(tmp_path, lit_and_dark, extra, note):
+    """A silhouette form of the mask term is printed and saved with the masks' decision."""
+    from fastneus.config import load_config
+    from fastneus.data import Scene
+    from fastneus.train.trainer import Trainer
+
+    cfg = load_config("cpu-quick", ["steps=4", "camera_blur=0", "threads=1"] + extra)
+    tr = Trainer(Scene.load(lit_and_dark[False]), cfg, tmp_path / "r", "cpu")
+    assert tr.masks_used
+    assert ("negative SDF" in tr.masks_note) is (note is not None)
+    assert note is None or note in tr.masks_note
+
+
 def test_pixel_min_sdf_takes_the_smallest_of_a_pixels_rays():
     """With blur_sub rays per pixel: the pixel's minimum over its rays that have samples; a
     pixel none of whose rays has samples gets 0 and no samples."""

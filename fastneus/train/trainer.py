@@ -191,6 +191,10 @@ class Trainer:
         if self.mask_start_used:
             self.masks_note += (f"; {'lit room: ' if ms == 'auto' else ''}mask weight {cfg.loss.mask_weight_start:g} "
                                 f"-> {cfg.loss.mask_weight:g} over the first {cfg.loss.mask_start_frac:.0%} (mask_start)")
+        if self.masks_used and cfg.loss.mask_loss != "bce":  # the mask term's form (the GPU preset: mixed)
+            frm = f" from {cfg.loss.mask_sdf_from:.0%} of the run" if cfg.loss.mask_sdf_from > 0 else ""
+            self.masks_note += (f"; mask pixels' rays must reach a negative SDF{frm} (mask_loss={cfg.loss.mask_loss}"
+                                f"{'' if cfg.loss.mask_loss == 'sdf' else ', background pixels by opacity'})")
         # grid updates query only the cells near the occupied ones on the CPU (occupancy.occ_update_cells)
         cells = cfg.occupancy.occ_update_cells
         self.occ_near = cells == "near" or (cells == "auto" and self.device.type == "cpu")
