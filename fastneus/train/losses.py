@@ -133,9 +133,8 @@ def mask_silhouette(min_sdf: torch.Tensor, has: torch.Tensor, opacity: torch.Ten
     inside = mask * torch.relu(min_sdf) * has
     if kind == "sdf":
         r = (inside + (1.0 - mask) * torch.relu(-min_sdf) * has).mean() * s
-    else:
-        op = opacity.clamp(max=1 - 1e-3)
-        r = inside.mean() * s - ((1.0 - mask) * torch.log1p(-op)).mean()
+    else:  # the background pixels as the no-mask background prior pushes them
+        r = inside.mean() * s + background_free_space(opacity, 1.0 - mask, 1.0)["background"]
     return {"mask": weight * r}
 
 

@@ -752,10 +752,11 @@ class Trainer:
         # every replay; an eager step passes the value itself
         capturing = self.cos_dev is not None and torch.cuda.is_current_stream_capturing()
         cos = self.cos_dev if capturing else self.cos_anneal(p)
+        mask_form = self.mask_form(p) if self.masks_used and "mask" in batch else None  # None: no mask term
         out = shade_samples(self.field, smp, self.rig.projection(), batch["origins"], batch["dirs"], batch["fidx"], c,
                             i_r=i_r, i_b=i_b, cos_anneal=cos, curvature=c.loss.curvature_weight > 0,
                             extra_points=xr, lit=bg_on and self.bg_lit,
-                            min_sdf=self.masks_used and self.mask_form(p) != "bce" and "mask" in batch)
+                            min_sdf=mask_form not in (None, "bce"))
         # the camera clips at 1: a rendered value above it is a saturated pixel, not an error
         # (unclipped, bright pattern pixels would pull i_r down on Normal-light scenes)
         # [B, 3], or [B, K, 3] with K shots per ray (multi-shot); + water (fastneus.train.rig)
@@ -772,14 +773,13 @@ class Trainer:
                                    c.loss.saturated)
         # eikonal on the samples plus the uniform points (evaluated with them in shade_samples)
         terms |= losses.eikonal(out["grad_all"], c.loss.eikonal_weight, valid=valid)
-        if self.masks_used and "mask" in batch:
+        if mask_form is not None:
             mw = self.mask_w_dev if capturing else self.mask_weight_at(p)
-            form = self.mask_form(p)
-            if form == "bce":
+            if mask_form == "bce":
                 terms |= losses.mask_bce(opacity, batch["mask"], mw)
             else:
                 m, has = self._pixel_min_sdf(out)
-                terms |= losses.mask_silhouette(m, has, opacity, batch["mask"], mw, self.field.inv_s(), form)
+                terms |= losses.mask_silhouette(m, has, opacity, batch["mask"], mw, self.field.inv_s(), mask_form)
         elif bg_on:
             ramp = losses.background_ramp(p, c.loss.bg_start_frac)
             is_bg = batch["bg"]
