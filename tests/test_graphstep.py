@@ -18,6 +18,23 @@ from fastneus.field.renderer import march_samples, march_samples_capped
 from fastneus.train.graphstep import _Entry, ray_bucket, sample_bucket
 
 
+
+class _KeyTrainer:
+    """What StepGraphs' key and capacity planning read of a trainer (a stand-in: no scene); the
+    mask term's form through Trainer's own rule."""
+
+    def __init__(self, preset: str = "cpu-quick", overrides=()):
+        self.cfg = load_config(preset, list(overrides))
+
+    def mask_form(self, p):
+        from fastneus.train.trainer import Trainer
+
+        return Trainer.mask_form(self, p)
+
+    @staticmethod
+    def photo_priors(p):
+        return False, False
+
 def test_buckets_hold_the_count_and_are_few():
     for n in list(range(8, 3000, 7)) + [65536, 100_003]:
         r = ray_bucket(n)
@@ -34,19 +51,8 @@ def test_the_mask_form_switches_at_its_fraction_and_keys_the_graphs():
     """mask_sdf_from: the BCE before the fraction, mask_loss after it; the captured graphs' key
     differs across the switch, so a graph recorded with one form never replays the other."""
     from fastneus.train.graphstep import StepGraphs
-    from fastneus.train.trainer import Trainer
 
-    class _T:
-        cfg = load_config("fewview", ["mask_sdf_from=0.4"])
-
-        def mask_form(self, p):
-            return Trainer.mask_form(self, p)
-
-        @staticmethod
-        def photo_priors(p):
-            return False, False
-
-    t = _T()
+    t = _KeyTrainer("fewview", ["mask_sdf_from=0.4"])
     assert t.cfg.loss.mask_loss == "mixed"  # the GPU preset's
     assert [t.mask_form(p) for p in (0.0, 0.39, 0.4, 0.9)] == ["bce", "bce", "mixed", "mixed"]
     assert load_config("cpu-quick").loss.mask_loss == "bce"
@@ -67,17 +73,7 @@ def test_ray_count_and_capacity_stay_put_under_jitter():
     assert len(seen) == 1
     assert g.ray_count(1000) != g.ray_count(760) or g.ray_count(1000) == ray_bucket(1000)
 
-    class _T:  # what _key reads of a trainer
-        cfg = load_config("cpu-quick")
-
-        @staticmethod
-        def photo_priors(p):
-            return False, False
-
-        @staticmethod
-        def mask_form(p):
-            return "bce"
-
+    _T = _KeyTrainer()
     batch = {"origins": torch.zeros(768, 3), "dirs": torch.zeros(768, 3)}
     cap = g._capacity(_T, batch, 250_000, 0.5)
     assert cap >= 250_000 * 1.05
@@ -351,24 +347,17 @@ def test_a_key_is_captured_only_when_the_next_step_repeats_it():
     g.cache, g.enabled, g._pending, g.eager = collections.OrderedDict(), True, None, 0
     calls = []
 
-    class _T:
-        cfg = load_config("cpu-quick")
+    class _Eager(_KeyTrainer):
         @staticmethod
         def fill_step_scalars(p):
             pass
 
         @staticmethod
-        def photo_priors(p):
-            return False, False
-
-        @staticmethod
-        def mask_form(p):
-            return "bce"
-
-        @staticmethod
         def compute(batch, xr, smp, p, valid=None, device_adam=False):
             calls.append((batch["origins"].shape[0], smp["n_samples"], valid, device_adam))
             return {"loss": torch.zeros(())}
+
+    _T = _Eager()
 
     xr = torch.zeros(256, 3)
     for n, s in ((1536, 60_000), (2560, 100_000), (3328, 140_000)):  # a new key every step
@@ -394,17 +383,7 @@ def test_capped_plan_uses_a_captured_graph_with_room_for_the_estimate():
     g = object.__new__(graphstep.StepGraphs)
     g.cache, g._pending = collections.OrderedDict(), None
 
-    class _T:
-        cfg = load_config("cpu-quick")
-
-        @staticmethod
-        def photo_priors(p):
-            return False, False
-
-        @staticmethod
-        def mask_form(p):
-            return "bce"
-
+    _T = _KeyTrainer()
     batch = {"origins": torch.zeros(1024, 3), "dirs": torch.zeros(1024, 3)}
     assert g.capped(_T, batch, None, 0.5) is None  # nothing known yet
     g._last = (100_000, 1024)
