@@ -229,6 +229,9 @@ class LossSection:
                           choices=("bce", "sdf", "mixed"))
     mask_sdf_from: float = knob(0.0, "mask_loss sdf / mixed act from this fraction of the run, the BCE before it "
                                 "(0 = from the start)", **FRAC)
+    mask_margin: float = knob(0.0, "mask_loss sdf / mixed: a mask pixel's ray must reach an SDF below -mask_margin / "
+                              "inv_s, not just below 0 (the depth at which NeuS's opacity has grown: a pull "
+                              "outwards that fades as the surface sharpens; 0 = none)", lo=0.0)
     mask_start: str = knob("auto", "a stronger mask weight early in the run (mask_weight_start, falling to "
                            "mask_weight at mask_start_frac): thin parts a blurred photo barely shows are held by the "
                            "masks while the shape forms, the photos have the last word. auto: with masks in a lit "

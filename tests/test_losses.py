@@ -99,6 +99,12 @@ def test_mask_silhouette_pulls_only_rays_on_the_wrong_side():
     t.backward()
     assert m.grad.tolist() == pytest.approx([0.0, 1.0, 0.0, 0.0, 0.0])
     assert op.grad[2] > 0 and op.grad[3] > 0 and op.grad[0] == 0 and op.grad[1] == 0
+    # a margin: the mask ray at -0.1 must now reach -2 / 10 = -0.2 (and the one at 0.2 goes further)
+    m.grad = None
+    t = losses.mask_silhouette(m, has, op.detach(), mask, 0.5, s, "sdf", margin=2.0)["mask"]
+    assert t.item() == pytest.approx(0.5 * 10.0 * (0.1 + 0.4 + 0.4) / 5)
+    t.backward()
+    assert m.grad.tolist() == pytest.approx([1.0, 1.0, 0.0, -1.0, 0.0])
 
 
 def test_background_only_pushes_background_pixels():

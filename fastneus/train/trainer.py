@@ -193,7 +193,8 @@ class Trainer:
                                 f"-> {cfg.loss.mask_weight:g} over the first {cfg.loss.mask_start_frac:.0%} (mask_start)")
         if self.masks_used and cfg.loss.mask_loss != "bce":  # the mask term's form (the GPU preset: mixed)
             frm = f" from {cfg.loss.mask_sdf_from:.0%} of the run" if cfg.loss.mask_sdf_from > 0 else ""
-            self.masks_note += (f"; mask pixels' rays must reach a negative SDF{frm} (mask_loss={cfg.loss.mask_loss}"
+            below = f"-{cfg.loss.mask_margin:g} / inv_s" if cfg.loss.mask_margin > 0 else "a negative SDF"
+            self.masks_note += (f"; mask pixels' rays must reach {below}{frm} (mask_loss={cfg.loss.mask_loss}"
                                 f"{'' if cfg.loss.mask_loss == 'sdf' else ', background pixels by opacity'})")
         # grid updates query only the cells near the occupied ones on the CPU (occupancy.occ_update_cells)
         cells = cfg.occupancy.occ_update_cells
@@ -779,7 +780,8 @@ class Trainer:
                 terms |= losses.mask_bce(opacity, batch["mask"], mw)
             else:
                 m, has = self._pixel_min_sdf(out)
-                terms |= losses.mask_silhouette(m, has, opacity, batch["mask"], mw, self.field.inv_s(), mask_form)
+                terms |= losses.mask_silhouette(m, has, opacity, batch["mask"], mw, self.field.inv_s(), mask_form,
+                                                 c.loss.mask_margin)
         elif bg_on:
             ramp = losses.background_ramp(p, c.loss.bg_start_frac)
             is_bg = batch["bg"]
