@@ -126,7 +126,10 @@ def ray_min(values: torch.Tensor, ray_index: torch.Tensor, offsets: torch.Tensor
     """
     arg = get_op("ray_argmin", backend)(values, ray_index, offsets, counts).long()
     has = arg >= 0
-    m = values[arg.clamp_min(0)] if values.shape[0] else torch.zeros(arg.shape, device=values.device)
+    # gather, not values[arg]: the indexing's backward on CUDA sorts the indices and walks the
+    # repeats one by one (every empty ray points at sample 0): 1.4 ms of a 5-ms step on an
+    # H200 (perf note 32); gather's backward is a scatter-add, whose repeats add zeros
+    m = values.gather(0, arg.clamp_min(0)) if values.shape[0] else torch.zeros(arg.shape, device=values.device)
     return torch.where(has, m, torch.zeros_like(m)), has.to(values.dtype)
 
 
