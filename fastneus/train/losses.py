@@ -77,7 +77,10 @@ def exposure_gain(log_gain: torch.Tensor, fidx: torch.Tensor) -> torch.Tensor:
     Returns:
         [B, 1] or [B, K, 1] gains.
     """
-    return frame_log_gains(log_gain).exp()[fidx.long()].unsqueeze(-1)
+    # index_select, not [fidx]: every frame's gain is read by thousands of rays, and the
+    # indexing's CUDA backward walks each index's repeats serially (perf note 32)
+    g = frame_log_gains(log_gain).exp().index_select(0, fidx.reshape(-1).long())
+    return g.view(*fidx.shape, 1)
 
 
 def _mean(x: torch.Tensor, valid: torch.Tensor | None) -> torch.Tensor:
