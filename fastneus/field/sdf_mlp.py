@@ -59,8 +59,9 @@ def aligned(t: torch.Tensor, pad: bool | None = None) -> torch.Tensor:
     A weight gradient ``g^T x`` sums over all N ~ 2^18 rows into a [P, Q] matrix of a few KB:
     cuBLAS must split the sum over N to use the GPU. With a row length that is not a multiple of 4
     (the 3 coordinates, the 3 colour channels, the 35 columns of the SDF input) its fast kernels
-    cannot load four floats at a time, and an H200 profile shows the one "align1" SIMT GEMM as the
-    second-largest kernel of the step (0.37 ms of ~5). The copy costs one pass over [N, C].
+    cannot load four floats at a time. An H200 profile shows one "align1" SIMT GEMM as the
+    second-largest kernel of the step (0.37 ms of ~5), which these products fit; the padded form is
+    predicted, not yet measured, to remove it (perf note 33). The copy costs one pass over [N, C].
     """
     c = t.shape[1]
     pad = PAD_WGRAD if pad is None else pad
