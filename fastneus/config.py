@@ -228,12 +228,6 @@ class LossSection:
                           "thin-legged realistic ant 2.70-2.92 -> 2.99-3.02; the CPU preset keeps bce, with which its "
                           "128-px realistic ant keeps its legs)",
                           choices=("bce", "sdf", "mixed"))
-    mask_sdf_from: float = knob(0.0, "mask_loss sdf / mixed act from this fraction of the run, the BCE before it "
-                                "(0 = from the start)", **FRAC)
-    mask_margin: float = knob(0.0, "mask_loss sdf / mixed: a mask pixel's ray must reach an SDF below -mask_margin / "
-                              "inv_s, not just below 0 (the depth at which NeuS's opacity has grown: a pull "
-                              "outwards that fades as the surface sharpens; 0 = none: 1 and 3 measured within "
-                              "noise or worse on the GPU, docs/benchmarks/mask-weight.md)", lo=0.0)
     mask_start: str = knob("auto", "a stronger mask weight early in the run (mask_weight_start, falling to "
                            "mask_weight at mask_start_frac): thin parts a blurred photo barely shows are held by the "
                            "masks while the shape forms, the photos have the last word. auto: with masks in a lit "

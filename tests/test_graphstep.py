@@ -20,16 +20,10 @@ from fastneus.train.graphstep import _Entry, ray_bucket, sample_bucket
 
 
 class _KeyTrainer:
-    """What StepGraphs' key and capacity planning read of a trainer (a stand-in: no scene); the
-    mask term's form through Trainer's own rule."""
+    """What StepGraphs' key and capacity planning read of a trainer (a stand-in: no scene)."""
 
-    def __init__(self, preset: str = "cpu-quick", overrides=()):
-        self.cfg = load_config(preset, list(overrides))
-
-    def mask_form(self, p):
-        from fastneus.train.trainer import Trainer
-
-        return Trainer.mask_form(self, p)
+    def __init__(self):
+        self.cfg = load_config("cpu-quick")
 
     @staticmethod
     def photo_priors(p):
@@ -47,19 +41,10 @@ def test_buckets_hold_the_count_and_are_few():
     assert len({ray_bucket(n) for n in range(730, 790)}) <= 2
 
 
-def test_the_mask_form_switches_at_its_fraction_and_keys_the_graphs():
-    """mask_sdf_from: the BCE before the fraction, mask_loss after it; the captured graphs' key
-    differs across the switch, so a graph recorded with one form never replays the other."""
-    from fastneus.train.graphstep import StepGraphs
-
-    t = _KeyTrainer("fewview", ["mask_sdf_from=0.4"])
-    assert t.cfg.loss.mask_loss == "mixed"  # the GPU preset's
-    assert [t.mask_form(p) for p in (0.0, 0.39, 0.4, 0.9)] == ["bce", "bce", "mixed", "mixed"]
+def test_the_presets_mask_forms():
+    """The GPU preset states the mask as where rays cross the surface; the CPU preset keeps the BCE."""
+    assert load_config("fewview").loss.mask_loss == "mixed"
     assert load_config("cpu-quick").loss.mask_loss == "bce"
-    g = StepGraphs.__new__(StepGraphs)
-    batch = {"origins": torch.zeros(768, 3), "dirs": torch.zeros(768, 3)}
-    assert g._key(t, batch, 1000, 0.3) != g._key(t, batch, 1000, 0.5)
-    assert g._key(t, batch, 1000, 0.5) == g._key(t, batch, 1000, 0.8)
 
 
 def test_ray_count_and_capacity_stay_put_under_jitter():

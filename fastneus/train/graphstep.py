@@ -177,7 +177,7 @@ class StepGraphs:
         return ok
 
     def _key(self, tr, batch: dict, capacity: int, p: float) -> tuple:
-        return (batch["origins"].shape[0], capacity, *tr.photo_priors(p), tr.mask_form(p), tuple(sorted(batch)))
+        return (batch["origins"].shape[0], capacity, *tr.photo_priors(p), tuple(sorted(batch)))
 
     def ray_count(self, n: int) -> int:
         """The ray count of this step: the last one while ``n`` stays within :data:`RAY_SLACK` of

@@ -114,8 +114,7 @@ def mask_bce(opacity: torch.Tensor, mask: torch.Tensor, weight: float | torch.Te
 
 
 def mask_silhouette(min_sdf: torch.Tensor, has: torch.Tensor, opacity: torch.Tensor, mask: torch.Tensor,
-                    weight: float | torch.Tensor, inv_s: torch.Tensor, kind: str,
-                    margin: float = 0.0) -> dict[str, torch.Tensor]:
+                    weight: float | torch.Tensor, inv_s: torch.Tensor, kind: str) -> dict[str, torch.Tensor]:
     """The mask as a statement about where rays cross the surface, not about their opacity.
 
     A mask pixel's ray must enter the object somewhere (its smallest SDF along the ray is
@@ -131,11 +130,10 @@ def mask_silhouette(min_sdf: torch.Tensor, has: torch.Tensor, opacity: torch.Ten
         has: [B] 1 where the ray has samples; opacity: [B]; mask: [B] in {0, 1};
         weight: the scheduled mask weight; inv_s: NeuS's sharpness (0-d);
         kind: ``sdf`` (both sides by the SDF) or ``mixed`` (mask pixels by the SDF, background
-            pixels by the BCE on the opacity: nothing semi-transparent outside the silhouette);
-        margin: a mask pixel's ray must reach ``-margin / inv_s`` (``loss.mask_margin``; 0: just 0).
+            pixels by the BCE on the opacity: nothing semi-transparent outside the silhouette).
     """
     s = inv_s.detach().reshape(())
-    inside = mask * torch.relu(min_sdf + margin / s) * has
+    inside = mask * torch.relu(min_sdf) * has
     if kind == "sdf":
         r = (inside + (1.0 - mask) * torch.relu(-min_sdf) * has).mean() * s
     else:  # the background pixels as the no-mask background prior pushes them

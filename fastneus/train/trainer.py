@@ -192,9 +192,7 @@ class Trainer:
             self.masks_note += (f"; {'lit room: ' if ms == 'auto' else ''}mask weight {cfg.loss.mask_weight_start:g} "
                                 f"-> {cfg.loss.mask_weight:g} over the first {cfg.loss.mask_start_frac:.0%} (mask_start)")
         if self.masks_used and cfg.loss.mask_loss != "bce":  # the mask term's form (the GPU preset: mixed)
-            frm = f" from {cfg.loss.mask_sdf_from:.0%} of the run" if cfg.loss.mask_sdf_from > 0 else ""
-            below = f"-{cfg.loss.mask_margin:g} / inv_s" if cfg.loss.mask_margin > 0 else "a negative SDF"
-            self.masks_note += (f"; mask pixels' rays must reach {below}{frm} (mask_loss={cfg.loss.mask_loss}"
+            self.masks_note += (f"; mask pixels' rays must reach a negative SDF (mask_loss={cfg.loss.mask_loss}"
                                 f"{'' if cfg.loss.mask_loss == 'sdf' else ', background pixels by opacity'})")
         # grid updates query only the cells near the occupied ones on the CPU (occupancy.occ_update_cells)
         cells = cfg.occupancy.occ_update_cells
@@ -327,12 +325,6 @@ class Trainer:
             mp = torch.where(has > 0, m, big).view(-1, self.blur_sub).amin(1)
             return torch.where(hp > 0, mp, torch.zeros_like(hp)), hp
         return m, has
-
-    def mask_form(self, p: float) -> str:
-        """The mask term's form at progress ``p``: ``loss.mask_loss``, or ``bce`` before
-        ``loss.mask_sdf_from``. The step's losses and the captured graphs' key both read this."""
-        c = self.cfg.loss
-        return c.mask_loss if p >= c.mask_sdf_from else "bce"
 
     def photo_priors(self, p: float) -> tuple[bool, bool]:
         """(background prior, foreground prior) acting at progress ``p`` (no masks; each from its
@@ -753,7 +745,7 @@ class Trainer:
         # every replay; an eager step passes the value itself
         capturing = self.cos_dev is not None and torch.cuda.is_current_stream_capturing()
         cos = self.cos_dev if capturing else self.cos_anneal(p)
-        mask_form = self.mask_form(p) if self.masks_used and "mask" in batch else None  # None: no mask term
+        mask_form = c.loss.mask_loss if self.masks_used and "mask" in batch else None  # None: no mask term
         out = shade_samples(self.field, smp, self.rig.projection(), batch["origins"], batch["dirs"], batch["fidx"], c,
                             i_r=i_r, i_b=i_b, cos_anneal=cos, curvature=c.loss.curvature_weight > 0,
                             extra_points=xr, lit=bg_on and self.bg_lit,
@@ -780,8 +772,7 @@ class Trainer:
                 terms |= losses.mask_bce(opacity, batch["mask"], mw)
             else:
                 m, has = self._pixel_min_sdf(out)
-                terms |= losses.mask_silhouette(m, has, opacity, batch["mask"], mw, self.field.inv_s(), mask_form,
-                                                 c.loss.mask_margin)
+                terms |= losses.mask_silhouette(m, has, opacity, batch["mask"], mw, self.field.inv_s(), mask_form)
         elif bg_on:
             ramp = losses.background_ramp(p, c.loss.bg_start_frac)
             is_bg = batch["bg"]
