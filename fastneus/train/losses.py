@@ -1,7 +1,8 @@
 """The training loss, one function per term (DESIGN: L1 colour + lambda eikonal + beta mask BCE,
 plus fastneus's priors; the mask term also in a silhouette form, :func:`mask_silhouette`). Each
-returns ``{name: weighted scalar}``; :func:`total` sums them in a fixed order. Adding a term: a function here, its weight as a knob in the config's ``loss``
-section, one line in ``Trainer.train_step``.
+returns ``{name: weighted scalar}``; :func:`total` sums them in a fixed order. Adding a term: a
+function here, its weight as a knob in the config's ``loss`` section, one line in
+``Trainer.train_step``.
 """
 from __future__ import annotations
 
