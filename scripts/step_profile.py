@@ -333,15 +333,8 @@ def main() -> None:
                     help="CUDA: also profile K steps back to back and list the device's idle gaps")
     ap.add_argument("--trace", default=None, metavar="FILE",
                     help="with --timeline: write those steps' profile as a Chrome trace (chrome://tracing, Perfetto)")
-    ap.add_argument("--pad-wgrad", choices=("auto", "on", "off"), default="auto",
-                    help="the small networks' weight gradients with odd-width factors padded to 4 columns "
-                         "(fastneus.field.sdf_mlp.aligned; auto: on CUDA): on / off to measure it")
     ap.add_argument("overrides", nargs="*", help="key=value config overrides")
     args = ap.parse_intermixed_args()  # key=value overrides may follow the options
-    if args.pad_wgrad != "auto":
-        import fastneus.field.sdf_mlp as sdf_mlp
-
-        sdf_mlp.PAD_WGRAD = args.pad_wgrad == "on"
 
     from fastneus.formats.detect import load_scene
     from fastneus.kernels import prepare_kernels

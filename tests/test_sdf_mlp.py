@@ -10,16 +10,6 @@ from fastneus.field.sdf_mlp import _SoftplusMLPWithGrad, fusable, mlp_and_input_
 DEVICES = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
 
 
-@pytest.fixture(params=[False, True], ids=["blocks", "padded"])
-def pad(request, monkeypatch):
-    """Both weight-gradient forms on every device: the products as they are, and with the
-    factors padded to a multiple of 4 columns (sdf_mlp.aligned; CUDA's default)."""
-    import fastneus.field.sdf_mlp as sdf_mlp
-
-    monkeypatch.setattr(sdf_mlp, "PAD_WGRAD", request.param)
-    return request.param
-
-
 def _net(d_in, hidden, d_out, beta, dtype, device, seed):
     torch.manual_seed(seed)
     net = nn.Sequential(nn.Linear(d_in, hidden), nn.Softplus(beta=beta), nn.Linear(hidden, d_out))
@@ -37,7 +27,7 @@ def _reference(net, a):
 
 @pytest.mark.parametrize("device", DEVICES)
 @pytest.mark.parametrize("seed", [0, 1])
-def test_outputs_and_gradients_match_autograd(device, seed, pad):
+def test_outputs_and_gradients_match_autograd(device, seed):
     """Same out and g, and the same gradients to the input and every weight for the same random
     upstream gradients on both outputs (fresh inputs; some pre-activations on softplus's linear
     branch above the threshold, where s = 1 and s' = 0)."""
@@ -68,7 +58,7 @@ def test_outputs_and_gradients_match_autograd(device, seed, pad):
 
 
 @pytest.mark.parametrize("device", DEVICES)
-def test_gradcheck_float64(device, pad):
+def test_gradcheck_float64(device):
     """float64 gradcheck of the node's first-order backward on a tiny network."""
     net = _net(5, 4, 3, 3.0, torch.float64, device, 0)
     a = torch.randn(6, 5, dtype=torch.float64, device=device, requires_grad=True)
@@ -99,7 +89,7 @@ def test_fusable_shapes():
 
 
 @pytest.mark.parametrize("device", DEVICES)
-def test_field_fused_vs_autograd_whole_loss(device, pad):
+def test_field_fused_vs_autograd_whole_loss(device):
     """SDFField: a loss on sdf, geometry features and the analytic gradient (eikonal) gives the
     table, every MLP weight and x the same gradients with the fused node as with autograd."""
     from fastneus.config import load_config
@@ -126,7 +116,7 @@ def test_field_fused_vs_autograd_whole_loss(device, pad):
 
 
 @pytest.mark.parametrize("device", DEVICES)
-def test_colour_stack_and_colsum_match_autograd(device, pad):
+def test_colour_stack_and_colsum_match_autograd(device):
     """mlp_forward (the colour network's Linear nodes with the bias gradient as a matrix
     product) against calling the module: same output and gradients to the input and every
     weight for the same random upstream gradient; colsum against sum(0)."""
@@ -157,21 +147,7 @@ def test_colour_stack_and_colsum_match_autograd(device, pad):
         assert bool((err <= bound).all()), (gemm, float((err - bound).max()))
 
 
-def test_aligned_pads_only_odd_widths_when_asked():
-    """aligned copies a block whose width is not a multiple of 4 with zero columns, only when
-    asked (or on CUDA); the padded product's leading block is the plain product."""
-    from fastneus.field.sdf_mlp import aligned
-
-    g0 = torch.Generator().manual_seed(int(torch.randint(0, 2**31 - 1, (1,))))
-    g, x, y = torch.randn(999, 3, generator=g0), torch.randn(999, 35, generator=g0), torch.randn(999, 8, generator=g0)
-    assert aligned(g, False) is g and aligned(y, True) is y
-    assert aligned(x, None) is x or x.is_cuda  # the default pads on CUDA only
-    a = aligned(x, True)
-    assert a.shape == (999, 36) and torch.equal(a[:, :35], x) and not a[:, 35].any()
-    torch.testing.assert_close((aligned(g, True).t() @ a)[:3, :35], g.t() @ x, rtol=1e-5, atol=1e-4)
-
-
-def test_colour_stack_gradcheck_float64(pad):
+def test_colour_stack_gradcheck_float64():
     from fastneus.field.sdf_mlp import mlp_forward
 
     torch.manual_seed(3)

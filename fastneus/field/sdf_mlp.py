@@ -49,27 +49,6 @@ def colsum(x: torch.Tensor, gemm: bool | None = None) -> torch.Tensor:
     return (x.new_ones(1, x.shape[0]) @ x).view(-1)
 
 
-PAD_WGRAD: bool | None = None  # the default of ``pad`` below (None: on CUDA); tests set it
-
-
-def aligned(t: torch.Tensor, pad: bool | None = None) -> torch.Tensor:
-    """``t`` [N, C], or a copy with zero columns up to a multiple of 4 (``pad``; None:
-    :data:`PAD_WGRAD`, None there: on CUDA).
-
-    A weight gradient ``g^T x`` sums over all N ~ 2^18 rows into a [P, Q] matrix of a few KB:
-    cuBLAS must split the sum over N to use the GPU. With a row length that is not a multiple of 4
-    (the 3 coordinates, the 3 colour channels, the 35 columns of the SDF input) its fast kernels
-    cannot load four floats at a time. An H200 profile shows one "align1" SIMT GEMM as the
-    second-largest kernel of the step (0.37 ms of ~5), which these products fit; the padded form is
-    predicted, not yet measured, to remove it (perf note 33). The copy costs one pass over [N, C].
-    """
-    c = t.shape[1]
-    pad = PAD_WGRAD if pad is None else pad
-    if not (t.device.type == "cuda" if pad is None else pad) or c % 4 == 0:
-        return t
-    return F.pad(t, (0, 4 - c % 4))
-
-
 class _Linear(torch.autograd.Function):
     """``F.linear(x, w, b)`` with the bias gradient from :func:`colsum` (else the same GEMMs)."""
 
@@ -82,8 +61,7 @@ class _Linear(torch.autograd.Function):
     def backward(ctx, g):
         x, w = ctx.saved_tensors
         gx = g @ w if ctx.needs_input_grad[0] else None
-        ga, o = aligned(g), g.shape[1]  # the padded copy serves the bias's GEMV too
-        return gx, (ga.t() @ aligned(x))[:o, : x.shape[1]], colsum(ga)[:o]
+        return gx, g.t() @ x, colsum(g)
 
 
 def mlp_forward(net: nn.Sequential, x: torch.Tensor) -> torch.Tensor:
@@ -142,14 +120,8 @@ class _SoftplusMLPWithGrad(torch.autograd.Function):
         # s' = beta s (1 - s); on softplus's linear branch s = 1, so s' = 0 there as in autograd
         dz = (1.0 - s).mul_(pwb).addmm_(l_out, w2).mul_(s)   # (L_out W2 + beta P w (1 - s)) * s
         grad_parts = [dz @ wp if ctx.needs_input_grad[5 + i] else None for i, wp in enumerate(w1p)]
-        lg, d = aligned(l_g), l_g.shape[1]
-        m = (s.t() @ lg)[:, :d]                              # [H, D] = sum_n s_n L_g,n^T
-        if lg is l_g:  # the input's blocks as they are (the CPU)
-            grad_w1 = torch.cat([dz.t() @ t for t in parts], 1)
-        else:  # one product over the blocks side by side with zero columns, as l_g's padding
-            pad = dz.new_zeros(dz.shape[0], lg.shape[1] - d)
-            grad_w1 = (dz.t() @ torch.cat([*parts, pad], 1))[:, :d]
-        grad_w1 = grad_w1.add_(m * w[:, None])               # + (s w)^T L_g
+        m = s.t() @ l_g                                      # [H, D] = sum_n s_n L_g,n^T
+        grad_w1 = torch.cat([dz.t() @ t for t in parts], 1).add_(m * w[:, None])  # + (s w)^T L_g
         grad_b1 = colsum(dz)
         grad_w2 = l_out.t() @ h
         grad_w2[0] += (m * w1).sum(1)                        # sum_n P * s = rowsum(W1 * s^T L_g)
