@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import json
+import math
 import os
 import subprocess
 import sys
@@ -153,3 +154,49 @@ def test_scripts_import_fastneus_before_torch():
         if p.name == "benchutil.py" and "torch" in first and first.get("fastneus", 10**9) > first["torch"]:
             late.append(p.name)
     assert not late, f"import fastneus before torch in: {late}"
+
+
+def _simulated_run(budget: float, host: float, device: float, log_every: int, predict: bool):
+    """The fit loop's clock against a device that runs ``device`` s per step while the host
+    enqueues in ``host`` s: a sync waits for the queue. Returns (steps, host elapsed at the end,
+    the time the device finishes its queue)."""
+    from fastneus.train.trainer import BudgetSync
+
+    sync_ctl = BudgetSync(budget)
+    wall = dev_done = elapsed = 0.0
+    step = 0
+    sync_ctl.synced(step, elapsed)
+    while elapsed < budget:
+        t0 = wall
+        wall += host
+        dev_done = max(dev_done, t0) + device     # the step runs once the device is free
+        step += 1
+        sync = step % log_every == 0 or (predict and sync_ctl.due(step))
+        if sync:
+            wall = max(wall, dev_done)
+        elapsed += wall - t0
+        if sync:
+            sync_ctl.synced(step, elapsed)
+    return step, elapsed, dev_done
+
+
+def test_budget_sync_ends_a_budgeted_run_on_the_device_not_the_host():
+    """Between syncs the host runs ahead of the device; a budget checked on the host alone lets
+    the device run up to log_every steps past it (before mesh.ply). BudgetSync's prediction
+    syncs as the budget nears, so the device stops within about a step of it."""
+    from fastneus.train.trainer import BudgetSync
+
+    host, device = 0.001, 0.006
+    for budget, log_every in ((3.13, 50), (5.0, 37), (2.93, 50)):
+        _, _, late = _simulated_run(budget, host, device, log_every, predict=False)
+        steps, elapsed, on_time = _simulated_run(budget, host, device, log_every, predict=True)
+        assert late - budget > 0.05                  # the old loop: tens of queued steps past the budget
+        assert on_time - budget <= device + 1e-9     # at most the one step that crosses it
+        assert abs(elapsed - on_time) < 1e-9         # the run's clock is the device's at the end
+        assert steps == math.ceil(budget / device - 1e-9)
+    b = BudgetSync(2.0)
+    assert not b.due(10**6)                          # no rate yet: only the log syncs
+    b.synced(0, 0.0)
+    b.synced(50, 1.0)                                # 0.02 s per step
+    assert not b.due(99) and b.due(100)
+    assert not BudgetSync(0.0).due(10**6)            # a step-count run never syncs for it

@@ -135,6 +135,36 @@ def lr_warmup(p: float, start: float, frac: float, decay: float) -> float:
     return decay
 
 
+class BudgetSync:
+    """When a time-budgeted CUDA run must wait for the device so its budget ends on time.
+
+    Replayed steps do not wait for the GPU, so between the loop's host syncs (every ``log_every``
+    steps) the host runs ahead and ``Trainer.elapsed`` grows by host time only; a sync adds the
+    device's lag back. A budget checked on the host alone ends up to ``log_every`` steps early on
+    the host and late on the device: the queued steps still run (up to ~0.3 s on an H200 at 3 s,
+    all of it before mesh.ply). This predicts the device's clock from the last sync and the seconds
+    per step between the last two, and asks for a sync once the prediction reaches the budget;
+    ``elapsed`` is then exact at the step that ends the run. A wrong prediction costs one early
+    sync (which re-estimates the rate), never a late end.
+    """
+
+    def __init__(self, budget: float):
+        self.budget = float(budget)
+        self.t_sync, self.s_sync, self.rate = 0.0, 0, None
+
+    def due(self, step: int) -> bool:
+        """Whether to sync after ``step`` (steps done so far) so the budget is not overrun."""
+        if self.budget <= 0 or self.rate is None:
+            return False
+        return self.t_sync + (step - self.s_sync) * self.rate >= self.budget
+
+    def synced(self, step: int, elapsed: float) -> None:
+        """Record a host sync after ``step`` steps at ``elapsed`` seconds (exact: device caught up)."""
+        if step > self.s_sync and elapsed > self.t_sync:
+            self.rate = (elapsed - self.t_sync) / (step - self.s_sync)
+        self.t_sync, self.s_sync = float(elapsed), int(step)
+
+
 class Trainer:
     """Optimises an :class:`SDFField` on a scene.
 
@@ -848,12 +878,17 @@ class Trainer:
         next_line = time.perf_counter() + PLAIN_EVERY_S
         with progress:
             task = progress.add_task("train", total=total, completed=done(), info="")
+            budget = BudgetSync(c.run.time_budget)
+            budget.synced(self.step, self.elapsed)
             while not self.finished():
                 t0 = time.perf_counter()
                 rec = self.train_step()
-                if self.device.type == "cuda" and (self.step % c.run.log_every == 0):
+                sync = self.device.type == "cuda" and (self.step % c.run.log_every == 0 or budget.due(self.step))
+                if sync:
                     torch.cuda.synchronize(self.device)
                 self.elapsed += time.perf_counter() - t0
+                if sync:
+                    budget.synced(self.step, self.elapsed)
                 steps_window += 1
                 if rec is not None:
                     samples_total += rec["samples"]
