@@ -157,7 +157,7 @@ def test_tensorboard_scalars_and_images(small_scene, tmp_path):
 
     tr = _trainer(small_scene, tmp_path / "run")
     pw = ProgressWriter(tr, every_s=0, every_steps=2)
-    assert pw.tb is not None
+    assert pw.tb is None  # opened by the first validation render (or after TB_OPEN_AFTER_S, or at close)
     for _ in range(4):
         tr.train_step()
         pw.on_log(tr.step, {"step": tr.step, "time": 0.1 * tr.step, "loss": 1.0 / tr.step, "psnr": 10.0 + tr.step,
@@ -172,3 +172,65 @@ def test_tensorboard_scalars_and_images(small_scene, tmp_path):
     assert [(e.step, round(e.value, 6)) for e in ea.Scalars("train/loss")] == [(1, 1.0), (2, 0.5), (3, 0.333333),
                                                                              (4, 0.25)]
     assert [e.step for e in ea.Images("validation/photo_render_depth")] == [2, 4]
+
+
+class _FakeWriter:
+    """Stands in for torch's SummaryWriter: records what is written."""
+
+    def __init__(self):
+        self.scalars, self.closed = [], False
+
+    def add_scalar(self, tag, value, step):
+        self.scalars.append((tag, step, value))
+
+    def add_image(self, *a, **k):
+        pass
+
+    def flush(self):
+        pass
+
+    def close(self):
+        self.closed = True
+
+
+def test_tensorboard_opens_after_the_delay_or_at_the_end(small_scene, tmp_path, monkeypatch):
+    """The writer (whose import costs 0.3-1 s) is not opened before TB_OPEN_AFTER_S of training, so
+    a short run's mesh.ply does not wait for it; every record logged before then is written when
+    it opens, in order; a run shorter than the delay opens it at close (after mesh.ply)."""
+    opened = []
+
+    def fake_open(self):
+        opened.append(_FakeWriter())
+        return opened[-1]
+
+    monkeypatch.setattr(pg, "tensorboard_available", lambda: True)
+    monkeypatch.setattr(ProgressWriter, "_open_tensorboard", fake_open)
+    tr = _trainer(small_scene, tmp_path / "run")
+    t = pg.TB_OPEN_AFTER_S
+    # a long run: records wait until the training clock passes the delay, then stream
+    pw = ProgressWriter(tr, every_s=0)
+    for step, time_s in ((50, 0.3 * t), (100, 0.9 * t)):
+        pw.on_log(step, {"step": step, "time": time_s, "loss": 1.0 / step})
+    assert pw.tb is None and not opened
+    pw.on_log(150, {"step": 150, "time": 1.2 * t, "loss": 1.0 / 150})
+    assert len(opened) == 1 and pw.tb is opened[0]
+    assert [(s, v) for tag, s, v in opened[0].scalars if tag == "train/loss"] == [(50, 1 / 50), (100, 1 / 100),
+                                                                                (150, 1 / 150)]
+    pw.on_log(200, {"step": 200, "time": 1.5 * t, "loss": 0.005})
+    assert opened[0].scalars[-1][:2] == ("train/seconds", 200)
+    pw.close()
+    assert opened[0].closed and pw.tb is None
+    pw.on_log(250, {"step": 250, "time": 2 * t, "loss": 0.004})  # after close: nothing reopens
+    assert len(opened) == 1
+    # a short run: nothing opens while training; close writes every record
+    pw = ProgressWriter(tr, every_s=0)
+    pw.on_log(50, {"step": 50, "time": 0.1 * t, "loss": 0.5})
+    assert not opened[1:]
+    pw.finish(60, 0.2 * t)
+    assert len(opened) == 2 and opened[1].closed
+    assert ("train/loss", 50, 0.5) in opened[1].scalars
+    # off: never opened
+    pw = ProgressWriter(tr, every_s=0, tensorboard="off")
+    pw.on_log(50, {"step": 50, "time": 2 * t, "loss": 0.5})
+    pw.close()
+    assert len(opened) == 2

@@ -30,6 +30,10 @@ from fastneus.train.rays import RayBank, build_projection
 
 VALIDATION_DIR = "validation"
 TENSORBOARD_DIR = "tensorboard"
+# TensorBoard's writer opens once this much training has run (or at the end, after mesh.ply):
+# importing it takes 0.3-1 s, which landed before a short run's mesh.ply (an H200's 3-s run: the
+# train phase 3.3 s for 3.0 s of steps). Until then the log records wait in memory.
+TB_OPEN_AFTER_S = 10.0
 CAPTION_PX = 14  # height of the caption bar over the panels
 
 
@@ -106,8 +110,12 @@ class ProgressWriter:
         if tensorboard == "on" and not tensorboard_available():
             raise FastneusError("the tensorboard package is not installed (pip install 'fastneus[tensorboard]')",
                                 field="tensorboard")
-        if tensorboard != "off" and tensorboard_available():
-            self.tb = self._open_tensorboard()
+        # opened by _writer(): after TB_OPEN_AFTER_S of training, at a validation render or at the end
+        self._tb_wanted = tensorboard != "off" and tensorboard_available()
+        self._tb_pending: list[tuple[int, dict]] = []  # log records before the writer opened
+        if self._tb_wanted:  # the folder is checked now: a link in its place is refused before training
+            with confined(self.out):
+                check_no_link(self.out / TENSORBOARD_DIR / "events")
 
     # ------------------------------------------------------------------ TensorBoard
     def _open_tensorboard(self):
@@ -120,11 +128,29 @@ class ProgressWriter:
         d.mkdir(parents=True, exist_ok=True)
         return SummaryWriter(log_dir=str(d))
 
+    def _writer(self):
+        """The TensorBoard writer, opened now if wanted and not yet open (the records logged so
+        far are written first); None without TensorBoard."""
+        if self.tb is None and self._tb_wanted:
+            self.tb = self._open_tensorboard()
+            pending, self._tb_pending = self._tb_pending, []
+            for step, record in pending:
+                self._scalars(step, record)
+        return self.tb
+
     def on_log(self, step: int, record: dict) -> None:
         """Record one log record (the dict the trainer appends to log.jsonl): each finite number
-        becomes a TensorBoard scalar ``train/<key>``; a no-op without TensorBoard."""
-        if self.tb is None:
+        becomes a TensorBoard scalar ``train/<key>``; a no-op without TensorBoard. Before
+        :data:`TB_OPEN_AFTER_S` seconds of training (``record["time"]``) the record waits in memory."""
+        if not self._tb_wanted:
             return
+        if self.tb is None and float(record.get("time", 0.0)) < TB_OPEN_AFTER_S:
+            self._tb_pending.append((int(step), dict(record)))
+            return
+        if self._writer() is not None:
+            self._scalars(step, record)
+
+    def _scalars(self, step: int, record: dict) -> None:
         for k, v in record.items():
             if k in ("step", "time") or isinstance(v, bool) or not isinstance(v, (int, float)):
                 continue
@@ -162,7 +188,7 @@ class ProgressWriter:
         with confined(self.out):
             atomic_write_image(path, img)
         self.written.append(path)
-        if self.tb is not None:
+        if self._writer() is not None:
             self.tb.add_image("validation/photo_render_depth", img, step, dataformats="HWC")
             self.tb.add_scalar("validation/psnr", psnr, step)
             self.tb.flush()
@@ -242,7 +268,11 @@ class ProgressWriter:
         return path
 
     def close(self) -> None:
-        """Flush and close the TensorBoard writer (validation images are complete when written)."""
+        """Flush and close the TensorBoard writer (validation images are complete when written);
+        records still waiting open it first."""
+        if self._tb_pending:
+            self._writer()
+        self._tb_wanted = False  # closed for good
         if self.tb is not None:
             self.tb.close()
             self.tb = None
