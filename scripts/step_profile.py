@@ -308,6 +308,41 @@ def profile_steps(tr, steps: int, top_n: int = 12) -> dict:
                             for k, v in top]}
 
 
+def is_gemm_kernel(name: str) -> bool:
+    """Whether a CUDA kernel name is a cuBLAS / CUTLASS matrix product (or GEMV)."""
+    n = name.lower()
+    return any(k in n for k in ("gemm", "gemv", "cutlass"))
+
+
+def gemm_ops(tr, steps: int) -> list[dict]:
+    """Which torch op, at which input shapes, launched each matrix-product kernel: ``steps``
+    eager steps (no captured graph: a replay hides the ops) profiled with shapes; per (op,
+    shapes, kernel) the device ms per step, largest first. ``align1`` in a kernel's name means
+    cuBLAS could not load four floats at a time from one operand (a row length not a multiple
+    of 4), the cue for padding that product.
+    """
+    from torch.profiler import ProfilerActivity, profile
+
+    graphs, tr.graphs = tr.graphs, None  # eager: every product is its own op
+    try:
+        torch.cuda.synchronize()
+        with profile(activities=[ProfilerActivity.CPU, ProfilerActivity.CUDA], record_shapes=True) as prof:
+            for _ in range(steps):
+                tr.train_step()
+            torch.cuda.synchronize()
+    finally:
+        tr.graphs = graphs
+    acc: dict[tuple, float] = {}
+    for e in prof.events():
+        for k in getattr(e, "kernels", []) or []:
+            if is_gemm_kernel(k.name):
+                key = (e.name, str(e.input_shapes), k.name[:110])
+                acc[key] = acc.get(key, 0.0) + k.duration / 1000.0
+    rows = [{"op": op, "shapes": shapes, "kernel": kern, "ms_per_step": ms / steps}
+            for (op, shapes, kern), ms in acc.items()]
+    return sorted(rows, key=lambda r: -r["ms_per_step"])
+
+
 def unprofiled_step_ms(tr, steps: int) -> float:
     """Mean wall ms per step over ``steps`` steps, synchronised only at both ends."""
     sync = torch.cuda.synchronize if str(tr.device).startswith("cuda") else (lambda: None)
@@ -333,6 +368,9 @@ def main() -> None:
                     help="CUDA: also profile K steps back to back and list the device's idle gaps")
     ap.add_argument("--trace", default=None, metavar="FILE",
                     help="with --timeline: write those steps' profile as a Chrome trace (chrome://tracing, Perfetto)")
+    ap.add_argument("--gemm-ops", type=int, default=0, metavar="K",
+                    help="CUDA: also profile K eager steps with shapes and list which op launched each matrix-product "
+                         "kernel (align1 = an operand's rows not a multiple of 4 floats)")
     ap.add_argument("overrides", nargs="*", help="key=value config overrides")
     args = ap.parse_intermixed_args()  # key=value overrides may follow the options
 
@@ -355,6 +393,8 @@ def main() -> None:
         res["sync_sites"] = sync_sites(tr, args.sync_sites)
     if args.timeline > 0 and args.device.startswith("cuda"):
         res["timeline"] = timeline(tr, args.timeline, args.top, args.trace)
+    if args.gemm_ops > 0 and args.device.startswith("cuda"):
+        res["gemm_ops"] = gemm_ops(tr, args.gemm_ops)
     cmd = command_line("step_profile.py")
     head = (f"{provenance_line(args.device, cmd)} Medians per step ({preset} preset, {tr.n_rays} rays per step)."
             "\n\n")
@@ -380,6 +420,11 @@ def main() -> None:
                    "launched only after the device had gone idle):\n\n")
             md += md_table([{k: (round(v, 3) if isinstance(v, float) else v) for k, v in r.items()}
                             for r in tl["gaps_by_scope"]], ["scope", "count", "ms", "late_ms"])
+    if res.get("gemm_ops"):
+        md += ("\n\nMatrix-product kernels by the op and input shapes that launched them (eager steps, ms per "
+               "step):\n\n")
+        md += md_table([{k: (round(v, 4) if isinstance(v, float) else v) for k, v in r.items()}
+                        for r in res["gemm_ops"][:30]], ["op", "shapes", "kernel", "ms_per_step"])
     write_results(out, "step-profile", {"args": vars(args), "preset": preset, "rays": tr.n_rays, **res}, md,
                   args.device, cmd)
     print(md)

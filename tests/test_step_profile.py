@@ -145,3 +145,16 @@ def test_gaps_by_scope_names_the_launching_part():
     assert rows["fastneus.load"]["count"] == 1 and abs(rows["fastneus.load"]["ms"] - 0.120) < 1e-9
     assert abs(rows["fastneus.load"]["late_ms"] - 0.115) < 1e-9
     assert abs(rows["fastneus.step"]["ms"] - 0.060) < 1e-9 and rows["fastneus.step"]["late_ms"] == 0.0
+
+
+def test_gemm_kernel_names():
+    """--gemm-ops keeps cuBLAS / CUTLASS products (the names the H200 profiles show) and nothing else."""
+    from step_profile import is_gemm_kernel
+
+    for name in ("void cutlass::Kernel2<cutlass_80_simt_sgemm_64x64_8x5_nt_align1>(cutlass_80_simt_sgemm_64x",
+                 "sm80_xmma_gemm_f32f32_f32f32_f32_tn_n_tilesize64x64x8_stage3_warpsize1x4x1_ffma_aligna4",
+                 "std::enable_if<!(false), void>::type internal::gemvx::kernel<int, int, float, float>"):
+        assert is_gemm_kernel(name)
+    for name in ("_hash_jac_bwd_kernel_3a82b8dd_cuda_kernel_forward", "Memcpy DtoD (Device -> Device)",
+                 "void at::native::vectorized_elementwise_kernel<4, at::native::sigmoid>"):
+        assert not is_gemm_kernel(name)
