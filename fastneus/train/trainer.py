@@ -932,6 +932,8 @@ class Trainer:
             t_val -= time.perf_counter()
             watch.finish(self.step, self.elapsed)
             t_val += time.perf_counter()
+        elif self.stop_signal is not None:  # stopped: no finish_run, so the TensorBoard records are written now
+            watch.close()
         else:  # pipeline.finish_run writes the last validation render after mesh.ply (finish_progress)
             self._watch = watch
         if final_save or self.stop_signal is not None:
