@@ -326,7 +326,7 @@ def _(c):
     return c.train(c.copy("fn")) + (["scene.json", "frames[0].image", "alpha"],)
 
 
-@case("image-16bit")
+@case("image-16bit-among-8bit")
 def _(c):
     _png(c.fn_file("images/001.png"), np.zeros((24, 24, 3), np.uint16))
     return c.train(c.copy("fn")) + (["scene.json", "frames[1].image", "16-bit"],)

@@ -214,3 +214,73 @@ def test_exposure_recovered_on_a_tiny_scene(tmp_path):
     assert learned[0] == 0.0  # the anchor
     assert np.abs(learned - true).mean() < 0.85 * np.abs(true).mean(), (learned, true)
     assert m["exposure_err"] == pytest.approx(np.abs(np.exp(learned - true) - 1).max(), abs=1e-3)
+
+
+# --------------------------------------------------------------------------- 16-bit photos
+def _deep_copy_of(small_scene, dst, response=None, bits_of=None):
+    """``small_scene`` with its (linear, 8-bit) photos rewritten as 16-bit PNGs (code x 257: the
+    same light), scene.json's response set to ``response`` (None: not stated) and the synth mark
+    dropped (so nothing else says linear); ``bits_of``: frame indices to rewrite (default all)."""
+    import json
+    import shutil
+
+    shutil.copytree(small_scene, dst)
+    d = json.loads((dst / "scene.json").read_text())
+    d.pop("response", None)
+    (d.get("meta") or {}).pop("generator", None)
+    if response is not None:
+        d["response"] = response
+    (dst / "scene.json").write_text(json.dumps(d))
+    for i, f in enumerate(d["frames"]):
+        if bits_of is None or i in bits_of:
+            p = dst / f["image"]
+            cv2.imwrite(str(p), cv2.imread(str(p), cv2.IMREAD_UNCHANGED).astype(np.uint16) * 257)
+    return dst
+
+
+def test_sixteen_bit_photos_become_srgb_codes_of_their_light(small_scene, tmp_path):
+    """A 16-bit photo set (a machine-vision camera's) loads; untagged it is linear light, kept as
+    8-bit sRGB codes (finer than 8-bit linear in the dark), and training decodes those as sRGB;
+    stated as sRGB it is the same codes; the illum.response knob is refused for it in one line."""
+    from fastneus.data import Scene
+
+    ref = Scene.load(small_scene)
+    sc = Scene.load(_deep_copy_of(small_scene, tmp_path / "lin16"))
+    assert ref.photo_bits == 8 and sc.photo_bits == 16
+    for i in range(len(sc.frames)):
+        got, want = sc.image(i), encode_u8(ref.image(i) / 255.0, "srgb")
+        assert got.dtype == np.uint8 and np.abs(got.astype(int) - want.astype(int)).max() <= 1
+    # the light comes back: decoding the codes as sRGB gives the 8-bit linear photo within its step
+    lin = decode(sc.image(0) / 255.0, "srgb")
+    assert np.abs(lin - ref.image(0) / 255.0).max() < 0.5 / 255 + 0.01 * lin.max()
+    r, note = resolve_response(sc, [0], "auto")
+    assert str(r) == "srgb" and "16-bit photos, linear" in note and "no colour tag" in note
+    with pytest.raises(FastneusError) as e:
+        resolve_response(sc, [0], "linear")
+    assert e.value.field == "illum.response" and "scene.json" in str(e.value)
+    stated = Scene.load(_deep_copy_of(small_scene, tmp_path / "srgb16", response="srgb"))
+    assert np.array_equal(stated.image(1), ref.image(1))  # v * 257 / 65535 = v / 255: the same codes
+    assert "16-bit photos, srgb: scene.json states it" in resolve_response(stated, [0], "auto")[1]
+
+
+def test_mixed_bit_depths_are_one_line(small_scene, tmp_path, capsys):
+    from fastneus.cli import main
+
+    d = _deep_copy_of(small_scene, tmp_path / "mixed", bits_of={1})
+    assert main(["train", str(d), "--device", "cpu", "--out", str(tmp_path / "run"), "steps=1"]) == 2
+    one_line_error(capsys, "frames[1].image", "16-bit", "8-bit")
+
+
+def test_training_on_sixteen_bit_photos(small_scene, tmp_path):
+    """The 16-bit set trains like the 8-bit one it was made from (same light, finer codes in the
+    dark); the decision is printed and saved."""
+    import json
+
+    from fastneus.data import Scene
+    from fastneus.pipeline import train_scene
+
+    cfg = load_config("cpu-quick", SMALL_RUN + ["steps=30"])
+    d = _deep_copy_of(small_scene, tmp_path / "lin16")
+    train_scene(Scene.load(d), cfg, tmp_path / "run16", "cpu", finish=False)
+    run = json.loads((tmp_path / "run16" / "run.json").read_text())
+    assert run["response"].startswith("response: auto -> srgb (16-bit photos, linear")

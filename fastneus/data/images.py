@@ -50,12 +50,15 @@ def image_size(path: str | os.PathLike) -> tuple[int, int] | None:
     return None if info is None else info[:2]
 
 
-# what each kind of image may be (channels, bits): photos are 8-bit colour as the model sees them;
-# masks use channel 0 (8 or 16 bit); patterns may be grey (white light). Alpha is never dropped silently.
-_IMAGE_KINDS = {"image": ((3,), (8,)), "mask": ((1, 3), (8, 16)), "pattern": ((1, 3), (8,))}
+# what each kind of image may be (channels, bits): photos are 8- or 16-bit colour (a 16-bit set is
+# linearised and kept as 8-bit sRGB codes: Scene.image); masks use channel 0 (8 or 16 bit);
+# patterns may be grey (white light). Alpha is never dropped silently.
+_IMAGE_KINDS = {"image": ((3,), (8, 16)), "mask": ((1, 3), (8, 16)), "pattern": ((1, 3), (8,))}
 
 
-def check_image(root: Path, rel: str, size: tuple[int, int] | None, file, fld: str, kind: str = "image") -> None:
+def check_image(root: Path, rel: str, size: tuple[int, int] | None, file, fld: str, kind: str = "image") -> int:
+    """Check that image ``rel`` exists, is readable, has ``size`` and what ``kind`` may have; returns
+    its bits per channel. Raises a FastneusError naming ``file`` and ``fld`` otherwise."""
     p = root / rel
     if not p.is_file():
         raise field_error(f"file not found: {p}", file, fld)
@@ -78,6 +81,7 @@ def check_image(root: Path, rel: str, size: tuple[int, int] | None, file, fld: s
     if w * h > MAX_PIXELS:  # only a PNG header is read here; OpenCV refuses to decode more
         raise field_error(f"{kind} {rel} is {w}x{h}, more than the {MAX_PIXELS} pixels OpenCV decodes", file, fld)
     warn_orientation(p)
+    return bits
 
 
 def _exif_orientation_tiff(tiff: bytes) -> int | None:
@@ -160,10 +164,11 @@ def imread(path: Path, flags: int, file, fld: str) -> np.ndarray:
     return im
 
 
-def read_rgb(path: Path, file, fld: str) -> np.ndarray:
+def read_rgb(path: Path, file, fld: str, deep: bool = False) -> np.ndarray:
+    """RGB [H, W, 3]: uint8, or with ``deep`` the file's own depth (uint16 for a 16-bit file)."""
     import cv2  # on first use: the CLI does not pay for OpenCV at start-up
 
-    im = imread(path, cv2.IMREAD_COLOR, file, fld)
+    im = imread(path, (cv2.IMREAD_COLOR | cv2.IMREAD_ANYDEPTH) if deep else cv2.IMREAD_COLOR, file, fld)
     return np.ascontiguousarray(im[:, :, ::-1])
 
 

@@ -124,22 +124,50 @@ def png_tags(path) -> dict:
     return out
 
 
+def _tagged(p: Path) -> tuple[Response, str] | None:
+    """The response image file ``p``'s PNG colour chunks state, None when they state none."""
+    tags = png_tags(p)
+    if tags.get("srgb"):
+        return Response("srgb"), f"{p.name} has a PNG sRGB chunk"
+    if tags.get("gamma"):
+        g = 1.0 / tags["gamma"] if tags["gamma"] > 0 else 1.0
+        if abs(g - 1.0) < 0.05:
+            return Response("linear"), f"{p.name} has a PNG gAMA chunk of 1.0"
+        if abs(g - 2.2) < 0.05:  # gAMA 0.45455 is how many writers say "sRGB"
+            return Response("srgb"), f"{p.name} has a PNG gAMA chunk of 1/2.2"
+        if GAMMA_RANGE[0] <= g <= GAMMA_RANGE[1]:
+            return Response("gamma", round(g, 3)), f"{p.name} has a PNG gAMA chunk of 1/{g:.3g}"
+    return None
+
+
 def _from_files(paths: list[Path]) -> tuple[Response, str]:
     """The response the image files state, else sRGB; (response, why)."""
     for p in paths:
-        tags = png_tags(p)
-        if tags.get("srgb"):
-            return Response("srgb"), f"{p.name} has a PNG sRGB chunk"
-        if tags.get("gamma"):
-            g = 1.0 / tags["gamma"] if tags["gamma"] > 0 else 1.0
-            if abs(g - 1.0) < 0.05:
-                return Response("linear"), f"{p.name} has a PNG gAMA chunk of 1.0"
-            if abs(g - 2.2) < 0.05:  # gAMA 0.45455 is how many writers say "sRGB"
-                return Response("srgb"), f"{p.name} has a PNG gAMA chunk of 1/2.2"
-            if GAMMA_RANGE[0] <= g <= GAMMA_RANGE[1]:
-                return Response("gamma", round(g, 3)), f"{p.name} has a PNG gAMA chunk of 1/{g:.3g}"
+        tagged = _tagged(Path(p))
+        if tagged is not None:
+            return tagged
     return Response("srgb"), ("the photos state no encoding; 8-bit camera photos are sRGB unless tagged "
                               "otherwise (set illum.response=linear if yours are raw/linear)")
+
+
+def deep_file_response(scene) -> tuple[Response, str]:
+    """The encoding of a scene's 16-bit photos (:meth:`fastneus.data.Scene.image` decodes them with it):
+    what scene.json's ``response`` states, else their PNG colour tags, else linear (a machine-vision
+    or raw camera's sensor values); (response, why)."""
+    stated = getattr(scene, "response", None)
+    if stated is not None:
+        return parse_response(stated, field="response"), "scene.json states it"
+    tagged = _tagged(Path(scene.path(scene.frames[0].image)))
+    return tagged if tagged is not None else (Response("linear"), "no colour tag: a machine-vision or raw "
+                                                                  "camera's sensor values")
+
+
+def deep_to_u8(im: np.ndarray, response) -> np.ndarray:
+    """A 16-bit photo [H, W, 3] (uint16, in ``response``'s encoding) as 8-bit sRGB codes: decoded
+    to linear light and encoded again, so the dark end keeps ~12 bits of linear precision where
+    8-bit linear codes would keep 8 (sRGB's first step is 1/3300 of full scale, linear's 1/255)."""
+    lin = decode(im.astype(np.float64) / 65535.0, response)
+    return encode_u8(lin, Response("srgb"))
 
 
 def resolve_response(scene, frames: list[int], knob: str) -> tuple[Response, str]:
@@ -154,6 +182,13 @@ def resolve_response(scene, frames: list[int], knob: str) -> tuple[Response, str
     Returns:
         (response, note): the decision and one line saying why, for the run summary.
     """
+    if getattr(scene, "photo_bits", 8) > 8:  # Scene.image gives them as 8-bit sRGB codes
+        if knob != "auto":
+            raise FastneusError(f"illum.response={knob} is for 8-bit photos; these are 16-bit: state their "
+                                "encoding in scene.json's response (linear | srgb | gamma=G)", field="illum.response")
+        r, why = deep_file_response(scene)
+        return Response("srgb"), (f"response: auto -> srgb (16-bit photos, {r}: {why}; decoded to linear light and "
+                                  "kept as 8-bit sRGB codes)")
     if knob != "auto":
         r = parse_response(knob, field="illum.response")
         return r, f"response: {r} (asked for)"
@@ -177,4 +212,5 @@ def is_identity(response) -> bool:
 
 
 __all__ = ["Response", "parse_response", "decode", "encode", "decode_lut", "encode_u8", "png_tags",
+           "deep_file_response", "deep_to_u8",
            "resolve_response", "is_identity", "GAMMA_RANGE"]

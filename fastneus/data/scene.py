@@ -20,7 +20,7 @@ from typing import Any
 import numpy as np
 
 from fastneus.data.groundtruth import GT_KEYS, read_clean, read_depth, read_normal
-from fastneus.data.images import check_image, image_size, read_mask, read_rgb, undistort
+from fastneus.data.images import check_image, image_info, image_size, read_mask, read_rgb, undistort
 from fastneus.data.model import (Bounds, Camera, Frame, FrameProjector, Illumination, Pattern, Projector,
                                  parse_port, port_to_dict, to_list)
 from fastneus.data.validate import (MAX_SIDE, as_dict, as_int, as_matrix, as_num, as_str, check_bounds_scale,
@@ -50,6 +50,7 @@ class Scene:
     name: str = ""
     meta: dict = field(default_factory=dict)  # free-form provenance (e.g. how synth made it), kept on save
     response: str | None = None  # the photos' camera response (linear | srgb | gamma=G); None = not stated
+    _bits: int | None = field(default=None, repr=False, compare=False)  # the photos' bits per channel (photo_bits)
 
     # ------------------------------------------------------------------ loading
     @classmethod
@@ -141,6 +142,7 @@ class Scene:
         if not fl:
             raise field_error("no frames: a scene needs at least one image", file, "frames")
         frames: list[Frame] = []
+        frames_bits = None  # the first photo's bits per channel (all must match)
         image_of: dict = {}  # path, resolved path, (device, inode) -> first frame using that photo
         for i, f in enumerate(fl):
             p = f"frames[{i}]"
@@ -208,7 +210,12 @@ class Scene:
                     raise field_error(f"file not found: {root / gt[k]}", file, f"{p}.gt.{k}")
             if check_files:
                 size = (cameras[cam].width, cameras[cam].height)
-                check_image(root, image, size, file, f"{p}.image")
+                bits = check_image(root, image, size, file, f"{p}.image")
+                if frames_bits is None:
+                    frames_bits = bits
+                elif bits != frames_bits:
+                    raise field_error(f"image {image} is {bits}-bit but frames[0].image is {frames_bits}-bit; "
+                                      "the photos of a scene share one bit depth", file, f"{p}.image")
                 if mask is not None:
                     check_image(root, mask, size, file, f"{p}.mask", kind="mask")
             frames.append(Frame(image=image, camera=cam, cam_to_world=c2w, projectors=fps, mask=mask,
@@ -247,7 +254,7 @@ class Scene:
             response = str(parse_response(response, file=file, field="response"))
         return cls(root=root, cameras=cameras, projectors=projectors, patterns=patterns, frames=frames,
                    bounds=bounds, illumination=illum, gt_mesh=gt_mesh, units=units, name=name, meta=meta,
-                   response=response)
+                   response=response, _bits=frames_bits)
 
     # ------------------------------------------------------------------ saving
     def to_dict(self, rel_to: str | os.PathLike | None = None) -> dict:
@@ -371,10 +378,27 @@ class Scene:
             out.setdefault(f.view, []).append(i)
         return out
 
+    @property
+    def photo_bits(self) -> int:
+        """Bits per channel of the photos (8 or 16; all alike, checked on load)."""
+        if self._bits is None:
+            info = image_info(self.path(self.frames[0].image)) if self.frames else None
+            self._bits = 8 if info is None else int(info[3])
+        return self._bits
+
     def image(self, i: int) -> np.ndarray:
-        """uint8 [H, W, 3] RGB image of frame ``i`` (undistorted if the camera has distortion)."""
+        """uint8 [H, W, 3] RGB image of frame ``i`` (undistorted if the camera has distortion).
+
+        16-bit photos come as 8-bit sRGB codes of their linear light
+        (:func:`fastneus.data.response.deep_to_u8`: decoded with :func:`deep_file_response`); training
+        then decodes them as sRGB (``resolve_response``)."""
         f = self.frames[i]
-        im = read_rgb(self.path(f.image), self.root / "scene.json", f"frames[{i}].image")
+        deep = self.photo_bits > 8
+        im = read_rgb(self.path(f.image), self.root / "scene.json", f"frames[{i}].image", deep=deep)
+        if deep:
+            from fastneus.data.response import deep_file_response, deep_to_u8
+
+            im = deep_to_u8(im, deep_file_response(self)[0]) if im.dtype == np.uint16 else im
         cam = self.frame_camera(i)
         return undistort(im, cam.K, cam.dist)
 
