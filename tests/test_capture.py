@@ -125,7 +125,8 @@ def test_realistic_scene_states_response_and_keeps_linear_truth(tmp_path, ideal)
                                          ({"response": "gama=2"}, "capture.response"),
                                          ({"sparkle": 1}, "capture.sparkle"),
                                          ({"interreflection": 5}, "capture.interreflection"),
-                                         ({"interreflection": -0.5}, "capture.interreflection")])
+                                         ({"interreflection": -0.5}, "capture.interreflection"),
+                                         ({"bits": 12}, "capture.bits"), ({"bits": 16.5}, "capture.bits")])
 def test_bad_capture_options(opts, field):
     with pytest.raises(FastneusError) as e:
         make_capture(opts)
@@ -196,3 +197,29 @@ def test_synth_command_takes_interreflection(tmp_path, capsys):
                  "--interreflection", "9", "--out", str(tmp_path / "bad")]) == 2
     err = capsys.readouterr().err
     assert "capture.interreflection" in err and "Traceback" not in err
+
+
+def test_sixteen_bit_photos_hold_the_same_light_finer(tmp_path, ideal):
+    """``bits=16`` writes the photos as 16-bit PNGs of the same linear light (a machine-vision
+    camera's); loaded, they come as 8-bit sRGB codes whose light is the 16-bit file's to within an
+    sRGB code, and finer in the dark than the 8-bit linear capture's codes."""
+    import cv2
+
+    lin8, _, _ = _render(tmp_path, "lin8", capture={"response": "linear", "read_noise": 0.0005})
+    s16 = synthesize(tmp_path / "lin16", capture={"response": "linear", "read_noise": 0.0005, "bits": 16}, **SMALL)
+    raw = cv2.imread(str(s16.root / s16.frames[0].image), cv2.IMREAD_UNCHANGED)
+    assert raw.dtype == np.uint16 and s16.photo_bits == 16 and s16.meta["capture"]["bits"] == 16
+    light16 = raw[:, :, ::-1].astype(np.float64) / 65535.0
+    # the same light as the 8-bit capture, to within the 8-bit linear step
+    assert np.abs(light16 - lin8.image(0) / 255.0).max() <= 0.5 / 255 + 1e-9
+    from fastneus.data.response import decode
+
+    back = decode(s16.image(0) / 255.0, "srgb")
+    c = s16.image(0).astype(np.float64)
+    span = decode(np.minimum(c + 1, 255) / 255.0, "srgb") - decode(np.maximum(c - 1, 0) / 255.0, "srgb")
+    assert np.all(np.abs(back - light16) <= 0.5 * span + 1e-12)  # rounded to the nearest sRGB code
+    dark = (light16 > 0.0001) & (light16 < 0.01)  # the backdrop under read noise, the shadows
+    assert dark.any()
+    err16 = np.abs(back - light16)[dark].mean()
+    err8 = np.abs(lin8.image(0) / 255.0 - light16)[dark].mean()
+    assert err16 < 0.5 * err8                                 # the dark end: sRGB codes are finer

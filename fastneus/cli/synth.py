@@ -54,6 +54,8 @@ def register(subparsers) -> None:
                        ("interreflection", "one diffuse bounce between surfaces, its strength (1 = physical; "
                                            "not in --realistic)")):
         g.add_argument(f"--{name}", type=float, default=None, help=what)
+    g.add_argument("--bits", type=int, default=None, choices=(8, 16),
+                   help="bits per channel of the photos (16: a machine-vision camera's PNGs; default 8)")
     p.add_argument("--no-contact-sheet", action="store_true",
                    help="do not write contact_sheet.png (all views in one image)")
     p.add_argument("--threads", type=int, default=1, help="torch CPU threads while rendering (default 1)")
@@ -82,7 +84,7 @@ def capture_options(args) -> dict:
     opts = {"response": args.response, "exposure": args.exposure, "speckle": args.speckle,
             "specular": args.specular, "shininess": args.shininess, "blur": args.defocus,
             "supersample": args.supersample, "vignetting": args.vignetting, "read_noise": args.read_noise, "shot_noise": args.shot_noise,
-            "interreflection": args.interreflection}
+            "interreflection": args.interreflection, "bits": args.bits}
     return {k: v for k, v in opts.items() if v is not None}
 
 

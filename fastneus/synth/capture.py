@@ -59,6 +59,7 @@ class Capture:
         read_noise: read-noise sigma (linear units).
         shot_noise: shot-noise variance per unit of linear signal.
         interreflection: strength of one diffuse bounce between surfaces (1 = physical); 0 = none.
+        bits: bits per channel of the photos written (8, or 16 as a machine-vision camera's PNGs).
     """
 
     response: str = "linear"
@@ -72,6 +73,7 @@ class Capture:
     read_noise: float = 0.0
     shot_noise: float = 0.0
     interreflection: float = 0.0
+    bits: int = 8
 
     def to_meta(self, gains: list[float]) -> dict:
         """The settings and the true per-frame gains, for ``scene.json``'s ``meta.capture``."""
@@ -84,7 +86,7 @@ REALISTIC = dict(response="srgb", exposure=0.25, speckle=0.3, specular=0.25, shi
                  vignetting=0.25, read_noise=0.002, shot_noise=2e-4)
 _LIMITS = {"exposure": (0.0, 4.0), "speckle": (0.0, 1.0), "specular": (0.0, 10.0), "shininess": (1.0, 1e4),
            "blur": (0.0, 5.0), "supersample": (1, 8), "vignetting": (0.0, 0.95), "read_noise": (0.0, 0.5), "shot_noise": (0.0, 0.5),
-           "interreflection": (0.0, 4.0)}
+           "interreflection": (0.0, 4.0), "bits": (8, 16)}
 
 
 def make_capture(capture: dict | Capture | None = None, realistic: bool = False) -> Capture | None:
@@ -118,9 +120,11 @@ def make_capture(capture: dict | Capture | None = None, realistic: bool = False)
             ok = False
         if not ok:
             raise FastneusError(f"expected a number in [{lo:g}, {hi:g}], got {v!r}", field=f"capture.{k}")
-        vals[k] = int(v) if k == "supersample" else float(v)
-        if k == "supersample" and vals[k] != float(v):
+        vals[k] = int(v) if k in ("supersample", "bits") else float(v)
+        if k in ("supersample", "bits") and vals[k] != float(v):
             raise FastneusError(f"expected a whole number, got {v!r}", field=f"capture.{k}")
+        if k == "bits" and vals[k] not in (8, 16):
+            raise FastneusError(f"expected 8 or 16, got {v!r}", field=f"capture.{k}")
     return Capture(**vals)
 
 

@@ -117,7 +117,11 @@ def _adopt_previous(out: Path) -> set[str]:
     return files
 
 
-def _quantise(c: torch.Tensor) -> torch.Tensor:
+def _quantise(c: torch.Tensor, bits: int = 8) -> torch.Tensor:
+    """[0, 1] values as uint8 codes, or with ``bits=16`` as 16-bit codes (int32 on the device: torch
+    has no uint16 arithmetic on every device; written as uint16)."""
+    if bits == 16:
+        return torch.round(c.clamp(0, 1) * 65535.0).to(torch.int32)
     return torch.round(c.clamp(0, 1) * 255.0).to(torch.uint8)
 
 
@@ -534,7 +538,8 @@ def _synthesize(out, shape, mesh, views, size, pattern, illum, albedo, noise, se
                     if cap is None:
                         c = c + (i_r * D + i_b) * qv
                     lit |= qv.amax(dim=1) > 0
-                img = torch.zeros(H * W, 3, dtype=torch.uint8, device=dev)
+                bits = cap.bits if cap is not None else 8
+                img = torch.zeros(H * W, 3, dtype=torch.int32 if bits == 16 else torch.uint8, device=dev)
                 if cap is not None:  # the camera sees the whole linear image (blur crosses the silhouette)
                     hs, Ds, ns = gs["hidx"], gs["D"], H * W * sub * sub
                     lp = torch.zeros_like(Ds)  # the projected light alone (speckle multiplies it only)
@@ -562,14 +567,18 @@ def _synthesize(out, shape, mesh, views, size, pattern, illum, albedo, noise, se
                             lin = lin + _noise((H * W, 3), noise, (seed, 3, fi), dev) * (~hit)[:, None]
                         lin[hidx] = lin[hidx] + _noise((nv, 3), noise, (seed, 2, fi), dev)
                         lin = lin.view(H, W, 3)
-                    img[:] = _quantise(finish(lin, cap, gains[fi], (seed, 9, fi), blurred=sub > 1).reshape(-1, 3))
+                    img[:] = _quantise(finish(lin, cap, gains[fi], (seed, 9, fi), blurred=sub > 1).reshape(-1, 3), bits)
                 else:
                     if wet:
                         img[:] = _quantise(water.background() + _noise((H * W, 3), noise, (seed, 3, fi), dev))
                         c = water.seen(c)
                     img[hidx] = _quantise(c + _noise((nv, 3), noise, (seed, 2, fi), dev))
                 img_np = img.view(H, W, 3).cpu().numpy()
-                write_png(out / "images" / f"{fi:03d}.png", img_np)
+                if bits == 16:  # written as 16 bits; the contact sheet shows the top 8
+                    write_png(out / "images" / f"{fi:03d}.png", img_np.astype(np.uint16))
+                    img_np = (img_np >> 8).astype(np.uint8)
+                else:
+                    write_png(out / "images" / f"{fi:03d}.png", img_np)
                 stats["lit"].append(float(lit.float().mean()) if nv else 0.0)
                 frames.append(Frame(
                     image=f"images/{fi:03d}.png", camera="cam0", cam_to_world=c2w, view=v,
