@@ -154,6 +154,30 @@ def test_roundtrip_fastneus_activeneus_fastneus(tmp_path):
     assert sorted(p.name for p in (tmp_path / "an" / "pattern").iterdir())[:2] == ["000_00.png", "000_01.png"]
 
 
+def test_sixteen_bit_photos_go_to_activeneus_as_their_linear_light(tmp_path):
+    """The format's photos are linear 8-bit: 16-bit (linear) photos are written as their light at
+    8 bits, which the format's reader (linear) reads back as the same light, to within one code
+    (two roundings: the sRGB code Scene.image keeps, then the linear one)."""
+    import json
+
+    src = make_scene(tmp_path / "src")
+    d = json.loads((src.root / "scene.json").read_text())
+    d["response"] = "linear"
+    (src.root / "scene.json").write_text(json.dumps(d))
+    lin = {}
+    for i, f in enumerate(d["frames"]):
+        p = src.root / f["image"]
+        lin[i] = cv2.imread(str(p))[:, :, ::-1].astype(np.float64) / 255.0  # the 8-bit photo's light
+        cv2.imwrite(str(p), np.round(lin[i][:, :, ::-1] * 65535).astype(np.uint16))
+    deep = Scene.load(src.root)
+    assert deep.photo_bits == 16
+    write_activeneus(deep, tmp_path / "an")
+    back = read_activeneus(tmp_path / "an")
+    for i in lin:
+        err = np.abs(back.image(i) / 255.0 - lin[i])
+        assert err.max() <= 1 / 255 + 1e-9 and err.mean() < 0.5 / 255
+
+
 def test_writer_rejects_free_projectors(tmp_path):
     s = make_scene(tmp_path / "src", n=2, n_proj=1)
     for i, f in enumerate(s.frames):

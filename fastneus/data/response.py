@@ -164,8 +164,9 @@ def deep_file_response(scene) -> tuple[Response, str]:
 
 def deep_to_u8(im: np.ndarray, response) -> np.ndarray:
     """A 16-bit photo [H, W, 3] (uint16, in ``response``'s encoding) as 8-bit sRGB codes: decoded
-    to linear light and encoded again, so the dark end keeps ~12 bits of linear precision where
-    8-bit linear codes would keep 8 (sRGB's first step is 1/3300 of full scale, linear's 1/255)."""
+    to linear light and encoded again. Below 24 % of full scale these codes are finer than 8-bit
+    linear ones (the first step is 1/3300 of full scale, not 1/255: the dark room's ambient light
+    and noise floor), above it coarser (at full scale 1/112), as a camera's JPEG is."""
     lin = decode(im.astype(np.float64) / 65535.0, response)
     return encode_u8(lin, Response("srgb"))
 

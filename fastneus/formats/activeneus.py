@@ -399,6 +399,10 @@ def _write_activeneus(scene: Scene, out: Path, downscale: int) -> None:
     for i, f in enumerate(scene.frames):
         cam = scene.frame_camera(i)
         im = scene.image(i)
+        if scene.photo_bits > 8:  # Scene.image gives sRGB codes of their light; the format's photos are linear
+            from fastneus.data.response import decode, encode_u8
+
+            im = encode_u8(decode(im / 255.0, "srgb"), "linear")
         K = cam.K.copy()
         if downscale > 1:
             h, w = im.shape[:2]
