@@ -1,7 +1,7 @@
 """Where a training step's wall time goes on the GPU: kernels vs launches vs host syncs.
 
     python scripts/step_profile.py SCENE [--device cuda] [--warm-steps 200] [--steps 20]
-                                   [--out DIR] [--sync-sites N] [--timeline K] [key=value ...]
+                                   [--out DIR] [--sync-sites N] [--timeline K] [--gemm-ops K] [key=value ...]
 
 Builds the device's default trainer (fewview on CUDA, cpu-quick on CPU, plus the overrides),
 trains ``--warm-steps`` steps untimed (so the occupancy grid and the sample counts are those of
@@ -19,6 +19,10 @@ kernels cannot help it, fewer launches (CUDA graphs, fused ops) can.
 steady state, where a step's host work overlaps the previous step's GPU work), and reports the
 device's span, its busy time and its idle gaps, summed per pair of neighbouring operations: an idle
 that follows the march's count read is the host's work between that sync and the next launch.
+
+``--gemm-ops K`` (CUDA) profiles K eager steps with input shapes and lists which torch op, at which
+shapes, launched each matrix-product kernel (perf note 33: the ``align1`` kernel is every weight
+gradient).
 
 Writes ``OUT/step-profile.json`` and ``OUT/step-profile.md``; prints the Markdown.
 """
