@@ -234,3 +234,23 @@ def test_tensorboard_opens_after_the_delay_or_at_the_end(small_scene, tmp_path, 
     pw.on_log(50, {"step": 50, "time": 2 * t, "loss": 0.5})
     pw.close()
     assert len(opened) == 2
+
+
+def test_tensorboard_folder_link_refused_early_and_late(small_scene, tmp_path, monkeypatch):
+    """A link as RUN/tensorboard is refused when the writer is set up (before training) and, since
+    the writer opens late, also when it is planted after that: nothing lands where it points."""
+    monkeypatch.setattr(pg, "tensorboard_available", lambda: True)
+    tr = _trainer(small_scene, tmp_path / "run")
+    (tmp_path / "run").mkdir(exist_ok=True)
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    os.symlink(elsewhere, tmp_path / "run" / "tensorboard")
+    with pytest.raises(FastneusError, match="symbolic link"):
+        ProgressWriter(tr, every_s=0)
+    os.unlink(tmp_path / "run" / "tensorboard")
+    pw = ProgressWriter(tr, every_s=0)  # no link now: set up
+    pw.on_log(50, {"step": 50, "time": 1.0, "loss": 0.5})
+    os.symlink(elsewhere, tmp_path / "run" / "tensorboard")  # planted before the writer opens
+    with pytest.raises(FastneusError, match="symbolic link"):
+        pw.on_log(100, {"step": 100, "time": 2 * pg.TB_OPEN_AFTER_S, "loss": 0.4})
+    assert list(elsewhere.iterdir()) == []

@@ -119,12 +119,13 @@ class ProgressWriter:
 
     # ------------------------------------------------------------------ TensorBoard
     def _open_tensorboard(self):
+        d = self.out / TENSORBOARD_DIR
+        with confined(self.out):
+            # checked again here: the writer opens late, and a link planted since is refused too
+            check_no_link(d / "events")
         # torch.utils.tensorboard imports the tensorboard package (~1 s): only here, only when installed
         from torch.utils.tensorboard import SummaryWriter
 
-        d = self.out / TENSORBOARD_DIR
-        with confined(self.out):
-            check_no_link(d / "events")  # the folder (or a link in its place) is refused before the writer opens it
         d.mkdir(parents=True, exist_ok=True)
         return SummaryWriter(log_dir=str(d))
 
