@@ -62,7 +62,8 @@ def make_scene(root: Path, n: int = 3, n_proj: int = 2, seed: int = 0, size=(24,
         frames.append(fr)
     d = {"format": "fastneus-scene", "version": 1, "bounds": {"center": center.tolist(), "radius": 0.8},
          "cameras": cams, "projectors": projs, "patterns": pats, "frames": frames,
-         "illumination": {"i_r": 0.3, "i_b": 0.05, "ambient": 1.0}}
+         "illumination": {"i_r": 0.3, "i_b": 0.05, "ambient": 1.0},
+         "response": "linear"}  # as the format's photos: written back as they are
     (root / "scene.json").write_text(json.dumps(d))
     return Scene.load(root)
 
@@ -176,6 +177,21 @@ def test_sixteen_bit_photos_go_to_activeneus_as_their_linear_light(tmp_path):
     for i in lin:
         err = np.abs(back.image(i) / 255.0 - lin[i])
         assert err.max() <= 1 / 255 + 1e-9 and err.mean() < 0.5 / 255
+
+
+def test_srgb_photos_go_to_activeneus_as_their_linear_light(tmp_path):
+    """An sRGB scene's photos are written as their light (the format's photos are linear)."""
+    from fastneus.data.response import decode, encode_u8
+
+    src = make_scene(tmp_path / "src", n=2)
+    d = json.loads((src.root / "scene.json").read_text())
+    d["response"] = "srgb"
+    (src.root / "scene.json").write_text(json.dumps(d))
+    srgb = Scene.load(src.root)
+    write_activeneus(srgb, tmp_path / "an")
+    back = read_activeneus(tmp_path / "an")
+    for i in range(2):
+        np.testing.assert_array_equal(back.image(i), encode_u8(decode(srgb.image(i) / 255.0, "srgb"), "linear"))
 
 
 def test_writer_rejects_free_projectors(tmp_path):

@@ -334,7 +334,9 @@ def read_activeneus(path: str | os.PathLike) -> Scene:
 def write_activeneus(scene: Scene, out: str | os.PathLike, downscale: int = 1) -> Path:
     """Write ``scene`` as an ActiveNeuS folder (``cameras_sphere.npz``, image/, mask/, pattern/).
 
-    Images are written undistorted (``Scene.image`` undistorts), as BGR PNG. Projectors
+    Images are written undistorted (``Scene.image`` undistorts), as BGR PNG of their linear light
+    (the format's photos are linear: ``auto``'s response decodes any other encoding, 16-bit
+    photos included, before they are written). Projectors
     must be rig-attached (the format stores camera->projector per frame and the official
     code uses frame 0's); a projector that is off in a frame gets a black pattern
     (Q = 0, the same image formation). ``illumination_params`` holds the scene's
@@ -396,13 +398,15 @@ def _write_activeneus(scene: Scene, out: Path, downscale: int) -> None:
     arrays: dict[str, Any] = {}
     has_mask = any(f.mask is not None for f in scene.frames)
     pattern_cache: dict[str, np.ndarray] = {}
+    from fastneus.data.response import decode, encode_u8, is_identity, resolve_response
+
+    # what Scene.image's codes mean (as training decodes them); the format's photos are linear light
+    response = resolve_response(scene, list(range(len(scene.frames))), "auto")[0]
     for i, f in enumerate(scene.frames):
         cam = scene.frame_camera(i)
         im = scene.image(i)
-        if scene.photo_bits > 8:  # Scene.image gives sRGB codes of their light; the format's photos are linear
-            from fastneus.data.response import decode, encode_u8
-
-            im = encode_u8(decode(im / 255.0, "srgb"), "linear")
+        if not is_identity(response):
+            im = encode_u8(decode(im / 255.0, response), "linear")
         K = cam.K.copy()
         if downscale > 1:
             h, w = im.shape[:2]
