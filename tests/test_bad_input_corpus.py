@@ -314,10 +314,10 @@ def _(c):
     return c.train(c.copy("fn")) + (["scene.json", "frames[2].image", "24x20"],)
 
 
-@case("image-grey")
+@case("image-grey-among-colour")
 def _(c):
-    _png(c.fn_file("images/000.png"), np.zeros((24, 24), np.uint8))
-    return c.train(c.copy("fn")) + (["scene.json", "frames[0].image", "1 channel"],)
+    _png(c.fn_file("images/001.png"), np.zeros((24, 24), np.uint8))  # grey photos are read; a mix is not
+    return c.train(c.copy("fn")) + (["scene.json", "frames[1].image", "grey"],)
 
 
 @case("image-rgba")

@@ -56,6 +56,8 @@ def register(subparsers) -> None:
         g.add_argument(f"--{name}", type=float, default=None, help=what)
     g.add_argument("--bits", type=int, default=None, choices=(8, 16),
                    help="bits per channel of the photos (16: a machine-vision camera's PNGs; default 8)")
+    g.add_argument("--mono", action="store_true",
+                   help="a monochrome camera: grey photos, each pixel the mean of the light's channels")
     p.add_argument("--no-contact-sheet", action="store_true",
                    help="do not write contact_sheet.png (all views in one image)")
     p.add_argument("--threads", type=int, default=1, help="torch CPU threads while rendering (default 1)")
@@ -84,7 +86,8 @@ def capture_options(args) -> dict:
     opts = {"response": args.response, "exposure": args.exposure, "speckle": args.speckle,
             "specular": args.specular, "shininess": args.shininess, "blur": args.defocus,
             "supersample": args.supersample, "vignetting": args.vignetting, "read_noise": args.read_noise, "shot_noise": args.shot_noise,
-            "interreflection": args.interreflection, "bits": args.bits}
+            "interreflection": args.interreflection, "bits": args.bits,
+            "mono": 1 if getattr(args, "mono", False) else None}
     return {k: v for k, v in opts.items() if v is not None}
 
 

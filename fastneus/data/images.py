@@ -50,15 +50,17 @@ def image_size(path: str | os.PathLike) -> tuple[int, int] | None:
     return None if info is None else info[:2]
 
 
-# what each kind of image may be (channels, bits): photos are 8- or 16-bit colour (a 16-bit set is
-# linearised and kept as 8-bit sRGB codes: Scene.image); masks use channel 0 (8 or 16 bit);
-# patterns may be grey (white light). Alpha is never dropped silently.
-_IMAGE_KINDS = {"image": ((3,), (8, 16)), "mask": ((1, 3), (8, 16)), "pattern": ((1, 3), (8,))}
+# what each kind of image may be (channels, bits): photos are 8- or 16-bit colour or grey (a 16-bit
+# set is linearised and kept as 8-bit sRGB codes: Scene.image; a grey one comes as three equal
+# channels and the projectors' light is made grey to match: Scene.grey); masks use channel 0 (8 or
+# 16 bit); patterns may be grey (white light). Alpha is never dropped silently.
+_IMAGE_KINDS = {"image": ((1, 3), (8, 16)), "mask": ((1, 3), (8, 16)), "pattern": ((1, 3), (8,))}
 
 
-def check_image(root: Path, rel: str, size: tuple[int, int] | None, file, fld: str, kind: str = "image") -> int:
+def check_image(root: Path, rel: str, size: tuple[int, int] | None, file, fld: str,
+                kind: str = "image") -> tuple[int, int]:
     """Check that image ``rel`` exists, is readable, has ``size`` and what ``kind`` may have; returns
-    its bits per channel. Raises a FastneusError naming ``file`` and ``fld`` otherwise."""
+    its (bits per channel, channels). Raises a FastneusError naming ``file`` and ``fld`` otherwise."""
     p = root / rel
     if not p.is_file():
         raise field_error(f"file not found: {p}", file, fld)
@@ -73,15 +75,14 @@ def check_image(root: Path, rel: str, size: tuple[int, int] | None, file, fld: s
         raise field_error(f"{kind} {rel} has an alpha channel, which fastneus would drop; save it without alpha "
                           f"(a transparent background belongs in a mask)", file, fld)
     if ch not in channels:
-        raise field_error(f"{kind} {rel} has {ch} channel(s); expected {' or '.join(map(str, channels))}"
-                          + (" (a colour photo; convert grey images to RGB)" if kind == "image" else ""), file, fld)
+        raise field_error(f"{kind} {rel} has {ch} channel(s); expected {' or '.join(map(str, channels))}", file, fld)
     if bits not in depths:
         raise field_error(f"{kind} {rel} is {bits}-bit; expected {' or '.join(map(str, depths))}-bit per channel",
                           file, fld)
     if w * h > MAX_PIXELS:  # only a PNG header is read here; OpenCV refuses to decode more
         raise field_error(f"{kind} {rel} is {w}x{h}, more than the {MAX_PIXELS} pixels OpenCV decodes", file, fld)
     warn_orientation(p)
-    return bits
+    return bits, ch
 
 
 def _exif_orientation_tiff(tiff: bytes) -> int | None:

@@ -51,6 +51,7 @@ class Scene:
     meta: dict = field(default_factory=dict)  # free-form provenance (e.g. how synth made it), kept on save
     response: str | None = None  # the photos' camera response (linear | srgb | gamma=G); None = not stated
     _bits: int | None = field(default=None, repr=False, compare=False)  # the photos' bits per channel (photo_bits)
+    _grey: bool | None = field(default=None, repr=False, compare=False)  # the photos are grey (grey)
 
     # ------------------------------------------------------------------ loading
     @classmethod
@@ -142,7 +143,7 @@ class Scene:
         if not fl:
             raise field_error("no frames: a scene needs at least one image", file, "frames")
         frames: list[Frame] = []
-        frames_bits = None  # the first photo's bits per channel (all must match)
+        frames_bits = frames_ch = None  # the first photo's bits per channel and channels (all must match)
         image_of: dict = {}  # path, resolved path, (device, inode) -> first frame using that photo
         for i, f in enumerate(fl):
             p = f"frames[{i}]"
@@ -210,12 +211,15 @@ class Scene:
                     raise field_error(f"file not found: {root / gt[k]}", file, f"{p}.gt.{k}")
             if check_files:
                 size = (cameras[cam].width, cameras[cam].height)
-                bits = check_image(root, image, size, file, f"{p}.image")
+                bits, ch = check_image(root, image, size, file, f"{p}.image")
                 if frames_bits is None:
-                    frames_bits = bits
+                    frames_bits, frames_ch = bits, ch
                 elif bits != frames_bits:
                     raise field_error(f"image {image} is {bits}-bit but frames[0].image is {frames_bits}-bit; "
                                       "the photos of a scene share one bit depth", file, f"{p}.image")
+                elif ch != frames_ch:
+                    raise field_error(f"image {image} is {_colours(ch)} but frames[0].image is {_colours(frames_ch)}; "
+                                      "the photos of a scene come from one kind of camera", file, f"{p}.image")
                 if mask is not None:
                     check_image(root, mask, size, file, f"{p}.mask", kind="mask")
             frames.append(Frame(image=image, camera=cam, cam_to_world=c2w, projectors=fps, mask=mask,
@@ -254,7 +258,7 @@ class Scene:
             response = str(parse_response(response, file=file, field="response"))
         return cls(root=root, cameras=cameras, projectors=projectors, patterns=patterns, frames=frames,
                    bounds=bounds, illumination=illum, gt_mesh=gt_mesh, units=units, name=name, meta=meta,
-                   response=response, _bits=frames_bits)
+                   response=response, _bits=frames_bits, _grey=None if frames_ch is None else frames_ch == 1)
 
     # ------------------------------------------------------------------ saving
     def to_dict(self, rel_to: str | os.PathLike | None = None) -> dict:
@@ -386,6 +390,19 @@ class Scene:
             self._bits = 8 if info is None else int(info[3])
         return self._bits
 
+    @property
+    def grey(self) -> bool:
+        """Whether the photos are grey (one channel: a monochrome camera; all alike, checked on load).
+
+        They are read as three equal channels, and the projectors' light as the grey a monochrome
+        sensor sees (:meth:`pattern_image`, :func:`fastneus.light.greyed`): the model then renders
+        three equal channels too, and i_r takes the sensor's sensitivity to the projectors' colour.
+        """
+        if self._grey is None:
+            info = image_info(self.path(self.frames[0].image)) if self.frames else None
+            self._grey = info is not None and int(info[2]) == 1
+        return self._grey
+
     def image(self, i: int) -> np.ndarray:
         """uint8 [H, W, 3] RGB image of frame ``i`` (undistorted if the camera has distortion).
 
@@ -412,8 +429,13 @@ class Scene:
         return undistort(m, cam.K, cam.dist)
 
     def pattern_image(self, pid: str) -> np.ndarray:
-        """uint8 [h, w, 3] RGB pattern ``pid``."""
-        return read_rgb(self.path(self.patterns[pid].file), self.root / "scene.json", f"patterns.{pid}.file")
+        """uint8 [h, w, 3] RGB pattern ``pid``; with grey photos its grey (:func:`fastneus.light.grey_rgb`)."""
+        im = read_rgb(self.path(self.patterns[pid].file), self.root / "scene.json", f"patterns.{pid}.file")
+        if self.grey:
+            from fastneus.light import grey_rgb
+
+            im = grey_rgb(im)
+        return im
 
     def gt_depth(self, i: int) -> np.ndarray | None:
         """float32 [H, W] ground-truth z-depth (world units, 0 = background) or None."""
@@ -447,6 +469,11 @@ class Scene:
         s = copy.copy(self)
         s.frames = [copy.deepcopy(self.frames[i]) for i in idx]
         return s
+
+
+def _colours(channels: int) -> str:
+    """'grey' or 'colour' for a photo's channel count (error messages)."""
+    return "grey" if channels == 1 else "colour"
 
 
 def view_frames(scene, frames: list[int]) -> dict[int, list[int]]:

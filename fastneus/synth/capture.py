@@ -60,6 +60,9 @@ class Capture:
         shot_noise: shot-noise variance per unit of linear signal.
         interreflection: strength of one diffuse bounce between surfaces (1 = physical); 0 = none.
         bits: bits per channel of the photos written (8, or 16 as a machine-vision camera's PNGs).
+        mono: 1 = a monochrome camera: each pixel records the mean of the light's three channels
+            (:func:`fastneus.light.grey_rgb`'s rule), written as grey PNGs; so is the pattern-free
+            ground truth. 0 = colour.
     """
 
     response: str = "linear"
@@ -74,6 +77,7 @@ class Capture:
     shot_noise: float = 0.0
     interreflection: float = 0.0
     bits: int = 8
+    mono: int = 0
 
     def to_meta(self, gains: list[float]) -> dict:
         """The settings and the true per-frame gains, for ``scene.json``'s ``meta.capture``."""
@@ -86,7 +90,7 @@ REALISTIC = dict(response="srgb", exposure=0.25, speckle=0.3, specular=0.25, shi
                  vignetting=0.25, read_noise=0.002, shot_noise=2e-4)
 _LIMITS = {"exposure": (0.0, 4.0), "speckle": (0.0, 1.0), "specular": (0.0, 10.0), "shininess": (1.0, 1e4),
            "blur": (0.0, 5.0), "supersample": (1, 8), "vignetting": (0.0, 0.95), "read_noise": (0.0, 0.5), "shot_noise": (0.0, 0.5),
-           "interreflection": (0.0, 4.0), "bits": (8, 16)}
+           "interreflection": (0.0, 4.0), "bits": (8, 16), "mono": (0, 1)}
 
 
 def make_capture(capture: dict | Capture | None = None, realistic: bool = False) -> Capture | None:
@@ -120,8 +124,8 @@ def make_capture(capture: dict | Capture | None = None, realistic: bool = False)
             ok = False
         if not ok:
             raise FastneusError(f"expected a number in [{lo:g}, {hi:g}], got {v!r}", field=f"capture.{k}")
-        vals[k] = int(v) if k in ("supersample", "bits") else float(v)
-        if k in ("supersample", "bits") and vals[k] != float(v):
+        vals[k] = int(v) if k in ("supersample", "bits", "mono") else float(v)
+        if k in ("supersample", "bits", "mono") and vals[k] != float(v):
             raise FastneusError(f"expected a whole number, got {v!r}", field=f"capture.{k}")
         if k == "bits" and vals[k] not in (8, 16):
             raise FastneusError(f"expected 8 or 16, got {v!r}", field=f"capture.{k}")
@@ -206,8 +210,10 @@ def finish(img: torch.Tensor, cap: Capture, gain: float, key: tuple, blurred: bo
     if cap.vignetting > 0:
         x = x * vignette(x.shape[0], x.shape[1], cap.vignetting, x.device)
     x = x * float(gain)
+    if cap.mono:  # one sensor value per pixel: the noise below is drawn once, not per channel
+        x = x.mean(dim=-1, keepdim=True)
     if cap.read_noise > 0 or cap.shot_noise > 0:
         var = cap.read_noise ** 2 + cap.shot_noise * x.clamp_min(0)
         z = np.random.default_rng(key).standard_normal(tuple(x.shape)).astype(np.float32)
         x = x + var.sqrt() * torch.from_numpy(z).to(x.device)
-    return encode(x.clamp(0.0, 1.0), cap.response)
+    return encode(x.clamp(0.0, 1.0), cap.response).expand(*img.shape)

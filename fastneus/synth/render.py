@@ -515,7 +515,12 @@ def _synthesize(out, shape, mesh, views, size, pattern, illum, albedo, noise, se
             if wet:
                 clean[:] = _quantise(water.background())
             D_off = D + cap.interreflection * g["albedo"] * b_amb if bounce_on else D  # the projectors off
-            clean[hidx] = _quantise((water.seen(D_off) if wet else D_off) + _noise((nv, 3), noise, (seed, 1, v), dev))
+            off = water.seen(D_off) if wet else D_off
+            if cap is not None and cap.mono:  # what the monochrome camera sees with the projectors off
+                off = off.mean(dim=1, keepdim=True).expand(-1, 3)
+            clean[hidx] = _quantise(off + _noise((nv, 3), noise, (seed, 1, v), dev))
+            if cap is not None and cap.mono:
+                clean[:] = clean[:, :1].expand(-1, 3)
             normal_img = torch.zeros(H * W, 3, dtype=torch.uint8, device=dev)
             normal_img[hidx] = torch.round((nh + 1) * 0.5 * 255).clamp(0, 255).to(torch.uint8)
             vname = f"{v:03d}"
@@ -574,11 +579,12 @@ def _synthesize(out, shape, mesh, views, size, pattern, illum, albedo, noise, se
                         c = water.seen(c)
                     img[hidx] = _quantise(c + _noise((nv, 3), noise, (seed, 2, fi), dev))
                 img_np = img.view(H, W, 3).cpu().numpy()
+                photo = img_np[:, :, 0] if cap is not None and cap.mono else img_np  # a grey PNG
                 if bits == 16:  # written as 16 bits; the contact sheet shows the top 8
-                    write_png(out / "images" / f"{fi:03d}.png", img_np.astype(np.uint16))
+                    write_png(out / "images" / f"{fi:03d}.png", photo.astype(np.uint16))
                     img_np = (img_np >> 8).astype(np.uint8)
                 else:
-                    write_png(out / "images" / f"{fi:03d}.png", img_np)
+                    write_png(out / "images" / f"{fi:03d}.png", photo)
                 stats["lit"].append(float(lit.float().mean()) if nv else 0.0)
                 frames.append(Frame(
                     image=f"images/{fi:03d}.png", camera="cam0", cam_to_world=c2w, view=v,

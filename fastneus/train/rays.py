@@ -320,6 +320,10 @@ def build_projection(scene, frames: list[int], device, refraction: bool = True,
     proj = Projection(t(K), t(W), t(pat, torch.int32), store, has_pattern=bool((pat >= 0).any()))
     for name in emit:
         mine = [scene.projectors[p] if kind_of[p].name == name else None for p in proj_ids]
+        if getattr(scene, "grey", False):  # a monochrome camera sees the lasers' light as grey
+            from fastneus.light import greyed
+
+            mine = [None if m is None else greyed(m) for m in mine]
         packed = get_projector_kind(name).call("pack", mine, device)
         proj.lights[name] = (t(on[name], torch.int32), packed)
     if refraction and any(scene.projectors[p].port is not None for p in proj_ids):

@@ -1,0 +1,116 @@
+"""Grey photos (a monochrome camera): synth writes them (capture ``mono``), a scene of them loads
+as three equal channels with the projectors' light made grey to match, a mix with colour photos
+is one line, the thin-line one-shot labelling finds lines without colour, and a run trains."""
+from __future__ import annotations
+
+import json
+import shutil
+
+import numpy as np
+import pytest
+
+from fastneus.data import Scene
+from fastneus.data.model import LaserPlane, Projector
+from fastneus.errors import FastneusError
+from fastneus.light import grey_rgb, greyed
+from fastneus.synth.render import synthesize
+
+SMALL = dict(shape="torus", views=3, size=(48, 48), pattern="crosslaser", seed=0, device="cpu", noise=0.0,
+             proj_size=(128, 96), progress=False, contact_sheet=False, illum="normal")
+
+
+@pytest.fixture(scope="module")
+def pair(tmp_path_factory):
+    """The same capture by a colour and a monochrome camera (linear, no noise)."""
+    root = tmp_path_factory.mktemp("grey")
+    colour = synthesize(root / "colour", capture={"response": "linear"}, **SMALL)
+    grey = synthesize(root / "grey", capture={"response": "linear", "mono": 1}, **SMALL)
+    return colour, grey
+
+
+def test_mono_capture_records_the_mean_light(pair):
+    import cv2
+
+    colour, grey = pair
+    raw = cv2.imread(str(grey.root / grey.frames[0].image), cv2.IMREAD_UNCHANGED)
+    assert raw.ndim == 2 and raw.dtype == np.uint8  # a grey PNG on disk
+    assert grey.grey and not colour.grey and grey.meta["capture"]["mono"] == 1
+    for i in range(len(grey.frames)):
+        g = grey.image(i)
+        assert g.shape == colour.image(i).shape and (g == g[..., :1]).all()  # three equal channels
+        # each pixel the mean of the colour camera's light (both rounded to 8 bits once), where no
+        # colour channel clipped (a mono pixel sums the light before it saturates)
+        c = colour.image(i).astype(np.float64)
+        ok = c.max(-1) < 250
+        assert ok.mean() > 0.9 and (c[ok].max(-1) > 20).any()
+        assert np.abs(g[..., 0][ok] - c[ok].mean(-1)).max() <= 1.0
+        assert (g[..., 0][~ok] >= np.floor(c[~ok].mean(-1))).all()  # brighter where colour clipped
+        clean = grey.gt_clean(i)
+        assert (clean == clean[..., :1]).all()
+
+
+def test_grey_scene_sees_the_patterns_grey(pair):
+    colour, grey = pair
+    pid = grey.frames[0].projectors["proj0"].pattern
+    pc, pg = colour.pattern_image(pid), grey.pattern_image(pid)
+    assert (pc[..., 1] != pc[..., 0]).any()  # red and green lines: a coloured pattern
+    assert (pg == pg[..., :1]).all()
+    assert np.array_equal(pg[..., 0], np.round(pc.astype(np.float64).mean(-1)).astype(np.uint8))
+
+
+def test_grey_rgb_and_greyed_lasers():
+    rng = np.random.default_rng()
+    im = rng.integers(0, 256, (5, 7, 3), dtype=np.uint8)
+    g = grey_rgb(im)
+    assert g.dtype == np.uint8 and g.shape == im.shape
+    assert np.abs(g[..., 0] - im.astype(np.float64).mean(-1)).max() <= 0.5
+    white = np.full((2, 2, 3), 200, np.uint8)
+    assert np.array_equal(grey_rgb(white), white)  # white light is what it was
+    plane = LaserPlane(normal=np.array([1.0, 0, 0]), offset=0.0, colour=np.array([0.9, 0.0, 0.3]), width=0.01,
+                       fan_deg=60.0)
+    laser = Projector(id="l", K=np.eye(3), width=1, height=1, planes=[plane])
+    out = greyed(laser)
+    assert np.allclose(out.planes[0].colour, [0.4, 0.4, 0.4])
+    assert np.allclose(laser.planes[0].colour, [0.9, 0.0, 0.3])  # the scene's own projector untouched
+    image_proj = Projector(id="p", K=np.eye(3), width=4, height=3)
+    assert greyed(image_proj) is image_proj
+
+
+def test_grey_among_colour_is_one_line(pair, tmp_path):
+    colour, grey = pair
+    d = tmp_path / "mixed"
+    shutil.copytree(colour.root, d)
+    shutil.copy(grey.root / grey.frames[1].image, d / colour.frames[1].image)
+    with pytest.raises(FastneusError) as e:
+        Scene.load(d)
+    msg = str(e.value)
+    assert "frames[1].image" in msg and "grey" in msg and "\n" not in msg
+
+
+def test_grey_scene_trains(pair, tmp_path):
+    from fastneus.config import load_config
+    from fastneus.pipeline import train_scene
+
+    _, grey = pair
+    cfg = load_config("cpu-quick", ["steps=60", "log_every=20", "mesh_resolution=40", "occ_resolution=32",
+                                    "target_samples=4096", "init_rays=256", "max_rays=512", "render_frames=[0]"])
+    trainer, metrics = train_scene(grey, cfg, tmp_path / "run", "cpu")
+    assert (tmp_path / "run" / "mesh.ply").is_file()
+    assert np.isfinite(metrics["chamfer_gt2rec_mm"]) and np.isfinite(metrics["i_r"])
+    log = [json.loads(x) for x in (tmp_path / "run" / "log.jsonl").read_text().splitlines()]
+    assert log[-1]["loss"] < log[0]["loss"]
+
+
+def test_grey_line_frames_start_from_the_sphere(tmp_path):
+    """The one-shot thin-line labelling needs the lines' colours (fastneus.classical.laserlines):
+    on a monochrome camera's photos of the same capture it is not used."""
+    from fastneus.classical.laserlines import sparse_line_frame
+    from fastneus.train.geometry_init import MIN_LINE_VIEWS, line_frames
+
+    kw = dict(shape="sphere", views=MIN_LINE_VIEWS, size=(48, 48), pattern="crosslaser", illum="dark", seed=0,
+              progress=False, contact_sheet=False)
+    colour = synthesize(tmp_path / "c", capture={"response": "linear"}, **kw)
+    grey = synthesize(tmp_path / "g", capture={"response": "linear", "mono": 1}, **kw)
+    views = list(range(MIN_LINE_VIEWS))
+    assert sparse_line_frame(colour, 0) and line_frames(colour, views) == views
+    assert not sparse_line_frame(grey, 0) and line_frames(grey, views) is None
