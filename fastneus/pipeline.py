@@ -310,6 +310,8 @@ def _train_and_finish(trainer, scene, cfg: Config, out: Path, device: str, conso
         console.print(trainer.hull_note)
         console.print(trainer.bg_note)
         console.print(trainer.response_note)
+        if trainer.photos_note:
+            console.print(trainer.photos_note, soft_wrap=True, highlight=False, markup=False)
         console.print(trainer.blur_note(), soft_wrap=True, highlight=False, markup=False)
         console.print(trainer.exposure_note(), soft_wrap=True, highlight=False, markup=False)
         length = f"time budget {cfg.run.time_budget:g} s" if cfg.run.time_budget > 0 else f"{cfg.run.steps} steps"
@@ -317,6 +319,7 @@ def _train_and_finish(trainer, scene, cfg: Config, out: Path, device: str, conso
     atomic_write_json(out / "run.json", {"scene": str(scene.root), "device": str(device), "preset": cfg.run.preset,
                                          "threads": trainer.threads, "masks": trainer.masks_note,
                                          "background_prior": trainer.bg_note, "response": trainer.response_note,
+                                         **({"photos": trainer.photos_note} if trainer.photos_note else {}),
                                          "camera_blur": trainer.blur_decision, "camera_blur_note": trainer.blur_note(),
                                          "exposure": trainer.exposure_decision,
                                          "exposure_note": trainer.exposure_note(),

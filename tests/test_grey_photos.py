@@ -114,3 +114,24 @@ def test_grey_line_frames_start_from_the_sphere(tmp_path):
     views = list(range(MIN_LINE_VIEWS))
     assert sparse_line_frame(colour, 0) and line_frames(colour, views) == views
     assert not sparse_line_frame(grey, 0) and line_frames(grey, views) is None
+
+
+def test_the_run_says_grey_and_warns_of_a_colour_code(pair, tmp_path):
+    """The summary names grey photos; a one-shot of a colour-coded pattern on them is warned of,
+    a grey one or a multi-view capture is not."""
+    from fastneus.train.geometry_init import grey_photos_note
+
+    colour, grey = pair
+    assert grey_photos_note(colour, [0, 1, 2]) is None
+    assert "grey" in grey_photos_note(grey, [0, 1, 2])
+    from fastneus.train.geometry_init import MAX_SWEEP_VIEWS
+
+    kw = dict(shape="sphere", views=1, size=(32, 32), seed=0, progress=False, contact_sheet=False,
+              capture={"response": "linear", "mono": 1})
+    many = synthesize(tmp_path / "m", pattern="colorline", **(kw | {"views": MAX_SWEEP_VIEWS + 1}))
+    assert "warning" not in grey_photos_note(many, list(range(len(many.frames))))  # multi-view: no sweep
+    coded = synthesize(tmp_path / "c", pattern="colorline", **kw)
+    note = grey_photos_note(coded, [0])
+    assert "warning" in note and "coded by colour" in note and "\n" not in note
+    plain = synthesize(tmp_path / "g", pattern="phaseshift", **kw)
+    assert "warning" not in (grey_photos_note(plain, list(range(len(plain.frames)))) or "")

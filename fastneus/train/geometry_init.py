@@ -325,3 +325,28 @@ def initialise_geometry(trainer) -> str | None:
     return (f"geometry init: {mode} -> {what} ({P.shape[0]} points from {n_src}, "
             f"{cfg.init.init_geometry_steps} fit steps, loss {loss:.4f}, {time.perf_counter() - t:.1f} s of the budget); "
             "coarse-to-fine off")
+
+
+def grey_photos_note(scene, frames: list[int]) -> str | None:
+    """The run summary's line on grey photos (a monochrome camera), None for colour ones; with a
+    warning when the run is a one-shot of a pattern coded by colour (:func:`sweepable_frames`
+    with patterns whose channels differ): grey photos keep only its brightness, and the plane
+    sweep and the photometric fit then confuse its stripes (toy, colourful lines, 400 px, 10 s on
+    an H200: 5.3 % mean depth error against 0.21 % on colour photos of the same capture)."""
+    if not getattr(scene, "grey", False):
+        return None
+    note = "photos: grey (a monochrome camera); the projectors' light is seen as its grey (the mean of its colour)"
+    if sweepable_frames(scene, frames) is not None:
+        from fastneus.data.images import read_rgb
+
+        used = sorted({pat for i in frames for _, pat in scene.active_projectors(i)})
+        coloured = []
+        for pid in used:
+            im = read_rgb(scene.path(scene.patterns[pid].file), scene.root / "scene.json", f"patterns.{pid}.file")
+            if (im.max(-1).astype(np.int16) - im.min(-1) > 32).mean() > 0.01:
+                coloured.append(pid)
+        if coloured:
+            note += (f"; warning: pattern {', '.join(coloured)} is coded by colour, which grey photos do not "
+                     "record: a one-shot of it is unreliable (use a pattern coded in brightness or time, e.g. "
+                     "Gray code or phase shift, or a colour camera)")
+    return note

@@ -16,7 +16,7 @@ from fastneus.config import Config, camera_blur_sigma, config_from_dict, save_co
 from fastneus.errors import FastneusError
 from fastneus.field.model import SDFField
 from fastneus.field.renderer import march_samples, march_samples_capped, pattern_pass_split, shade_samples
-from fastneus.train.geometry_init import fit_batch
+from fastneus.train.geometry_init import fit_batch, grey_photos_note
 from fastneus.io import open_append
 from fastneus.kernels.occupancy import OccupancyGrid
 from fastneus.train.checkpoint import CKPT_NAME, load_checkpoint, restore, save_checkpoint  # noqa: F401 (re-export)
@@ -194,6 +194,7 @@ class Trainer:
         want_bg = not self.masks_used and cfg.loss.bg_prior != "off" and cfg.loss.bg_weight > 0
         # photos -> linear light through a 256-entry table in the bank: the model, i_r, i_b are linear
         self.response, self.response_note = resolve_response(scene, self.frames, cfg.illum.response)
+        self.photos_note = grey_photos_note(scene, self.frames)  # None for colour photos
         # multi-shot viewpoints (e.g. Gray code) share one ray per pixel across their shots (fastneus.train.multishot)
         self.bank = make_bank(scene, self.frames, self.device, cfg, load_masks=self.masks_used,
                               brightness_cdf=cfg.rays.bright_fraction > 0,
