@@ -135,3 +135,20 @@ def test_the_run_says_grey_and_warns_of_a_colour_code(pair, tmp_path):
     assert "warning" in note and "coded by colour" in note and "\n" not in note
     plain = synthesize(tmp_path / "g", pattern="phaseshift", **kw)
     assert "warning" not in (grey_photos_note(plain, list(range(len(plain.frames)))) or "")
+
+
+def test_grey_survives_conversion_and_sixteen_bits(pair, tmp_path):
+    """Converted to our format and to NeRF transforms the photos stay grey; 16-bit grey photos load
+    as 8-bit sRGB codes of their light in three equal channels."""
+    from fastneus.cli import main
+    from fastneus.formats.detect import load_scene
+
+    _, grey = pair
+    for to in ("fastneus", "nerf"):
+        assert main(["convert", str(grey.root), "--to", to, "--out", str(tmp_path / to)]) == 0
+        back = load_scene(tmp_path / to)
+        assert back.grey and np.array_equal(back.image(0), grey.image(0))
+    deep = synthesize(tmp_path / "g16", capture={"response": "linear", "mono": 1, "bits": 16}, **SMALL)
+    assert deep.grey and deep.photo_bits == 16
+    im = deep.image(0)
+    assert im.dtype == np.uint8 and (im == im[..., :1]).all() and im.max() > 0
