@@ -162,12 +162,13 @@ def deep_file_response(scene) -> tuple[Response, str]:
                                                                   "camera's sensor values")
 
 
-def deep_to_u8(im: np.ndarray, response) -> np.ndarray:
-    """A 16-bit photo [H, W, 3] (uint16, in ``response``'s encoding) as 8-bit sRGB codes: decoded
-    to linear light and encoded again. Below 24 % of full scale these codes are finer than 8-bit
+def deep_to_u8(im: np.ndarray, response, full: int = 65535) -> np.ndarray:
+    """A 16-bit photo [H, W, 3] (uint16, in ``response``'s encoding, ``full`` its full-scale value:
+    4095 for a 12-bit camera's right-aligned values) as 8-bit sRGB codes: decoded to linear light
+    and encoded again. Below 24 % of full scale these codes are finer than 8-bit
     linear ones (the first step is 1/3300 of full scale, not 1/255: the dark room's ambient light
     and noise floor), above it coarser (at full scale 1/112), as a camera's JPEG is."""
-    lin = decode(im.astype(np.float64) / 65535.0, response)
+    lin = decode(im.astype(np.float64) / float(full), response)
     return encode_u8(lin, Response("srgb"))
 
 
@@ -188,8 +189,9 @@ def resolve_response(scene, frames: list[int], knob: str) -> tuple[Response, str
             raise FastneusError(f"illum.response={knob} is for 8-bit photos; these are 16-bit: state their "
                                 "encoding in scene.json's response (linear | srgb | gamma=G)", field="illum.response")
         r, why = deep_file_response(scene)
-        return Response("srgb"), (f"response: auto -> srgb (16-bit photos, {r}: {why}; decoded to linear light and "
-                                  "kept as 8-bit sRGB codes)")
+        full = scene.photo_full_scale()[1] if hasattr(scene, "photo_full_scale") else "16-bit values"
+        return Response("srgb"), (f"response: auto -> srgb (16-bit photos, {r}: {why}; {full}; decoded to linear "
+                                  "light and kept as 8-bit sRGB codes)")
     if knob != "auto":
         r = parse_response(knob, field="illum.response")
         return r, f"response: {r} (asked for)"

@@ -50,7 +50,9 @@ class Scene:
     name: str = ""
     meta: dict = field(default_factory=dict)  # free-form provenance (e.g. how synth made it), kept on save
     response: str | None = None  # the photos' camera response (linear | srgb | gamma=G); None = not stated
+    sensor_bits: int | None = None  # bits of the sensor values in 16-bit photos (right-aligned); None = decided
     _bits: int | None = field(default=None, repr=False, compare=False)  # the photos' bits per channel (photo_bits)
+    _full: tuple | None = field(default=None, repr=False, compare=False)  # (full scale, why) of 16-bit photos
     _grey: bool | None = field(default=None, repr=False, compare=False)  # the photos are grey (grey)
 
     # ------------------------------------------------------------------ loading
@@ -256,9 +258,16 @@ class Scene:
             from fastneus.data.response import parse_response
 
             response = str(parse_response(response, file=file, field="response"))
+        sensor_bits = d.get("sensor_bits")
+        if sensor_bits is not None:
+            if isinstance(sensor_bits, bool) or not isinstance(sensor_bits, int) or not 8 <= sensor_bits <= 16:
+                raise field_error(f"expected a whole number of bits in 8..16, got {sensor_bits!r}", file, "sensor_bits")
+            if frames_bits is not None and frames_bits <= 8:
+                raise field_error("is for 16-bit photos (the bits their values use); these are 8-bit", file,
+                                  "sensor_bits")
         return cls(root=root, cameras=cameras, projectors=projectors, patterns=patterns, frames=frames,
                    bounds=bounds, illumination=illum, gt_mesh=gt_mesh, units=units, name=name, meta=meta,
-                   response=response, _bits=frames_bits, _grey=None if frames_ch is None else frames_ch == 1)
+                   response=response, sensor_bits=sensor_bits, _bits=frames_bits, _grey=None if frames_ch is None else frames_ch == 1)
 
     # ------------------------------------------------------------------ saving
     def to_dict(self, rel_to: str | os.PathLike | None = None) -> dict:
@@ -302,6 +311,7 @@ class Scene:
                              "known": bool(il.known)},
             "gt": {"mesh": rp(self.gt_mesh)},
             **({"response": self.response} if self.response is not None else {}),
+            **({"sensor_bits": int(self.sensor_bits)} if self.sensor_bits is not None else {}),
             "meta": copy.deepcopy(self.meta),
         }
 
@@ -390,6 +400,30 @@ class Scene:
             self._bits = 8 if info is None else int(info[3])
         return self._bits
 
+    def photo_full_scale(self) -> tuple[int, str]:
+        """(the value that is full scale in the 16-bit photos, why): ``2**sensor_bits - 1`` when
+        scene.json states ``sensor_bits``, else decided from the brightest value of all photos (each
+        read once more): a 10-, 12- or 14-bit camera writes its values right-aligned in a 16-bit
+        file (as OpenCV and most SDKs save Mono12), and read as 16-bit light they would be 4-64x too
+        dark (on a 12-bit copy of a dark-room capture the background prior saw 99 % of the pixels as
+        empty and carved the object away). The smallest of 10 / 12 / 14 / 16 bits that holds that
+        value is taken: a dim 12-bit capture taken for 10 bits is only brighter, an exposure."""
+        if self._full is None:
+            if self.sensor_bits is not None:
+                b = int(self.sensor_bits)
+                self._full = (2 ** b - 1, f"{b}-bit values, scene.json's sensor_bits")
+            else:
+                mx = 0
+                for i, f in enumerate(self.frames):
+                    im = read_rgb(self.path(f.image), self.root / "scene.json", f"frames[{i}].image", deep=True)
+                    mx = max(mx, int(im.max()))
+                b = next(b for b in (10, 12, 14, 16) if mx <= 2 ** b - 1)
+                why = "16-bit values" if b == 16 else \
+                    (f"{b}-bit values: the brightest photo value is {mx}, a {b}-bit camera's right-aligned values, "
+                     "scaled to full range (state sensor_bits in scene.json if they are not)")
+                self._full = (2 ** b - 1, why)
+        return self._full
+
     @property
     def grey(self) -> bool:
         """Whether the photos are grey (one channel: a monochrome camera; all alike, checked on load).
@@ -412,10 +446,15 @@ class Scene:
         f = self.frames[i]
         deep = self.photo_bits > 8
         im = read_rgb(self.path(f.image), self.root / "scene.json", f"frames[{i}].image", deep=deep)
-        if deep:
+        if deep and im.dtype == np.uint16:
             from fastneus.data.response import deep_file_response, deep_to_u8
 
-            im = deep_to_u8(im, deep_file_response(self)[0]) if im.dtype == np.uint16 else im
+            full, why = self.photo_full_scale()
+            if int(im.max()) > full:
+                raise FastneusError(f"has values up to {int(im.max())}, above the full scale {full} of the photos "
+                                    f"({why}); state the camera's bits in scene.json's sensor_bits",
+                                    file=self.path(f.image), field=f"frames[{i}].image")
+            im = deep_to_u8(im, deep_file_response(self)[0], full)
         cam = self.frame_camera(i)
         return undistort(im, cam.K, cam.dist)
 

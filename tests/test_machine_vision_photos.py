@@ -1,6 +1,8 @@
-"""Grey photos (a monochrome camera): synth writes them (capture ``mono``), a scene of them loads
-as three equal channels with the projectors' light made grey to match, a mix with colour photos
-is one line, the thin-line one-shot labelling finds lines without colour, and a run trains."""
+"""What machine-vision cameras write. Grey photos (a monochrome camera): synth writes them
+(capture ``mono``), a scene of them loads as three equal channels with the projectors' light made
+grey to match, a mix with colour photos is one line, the thin-line one-shot labelling is not used
+on them, the run says so, and a run trains. 10-14-bit sensor values right-aligned in 16-bit files
+are read at full range (``sensor_bits``, stated or decided)."""
 from __future__ import annotations
 
 import json
@@ -152,3 +154,59 @@ def test_grey_survives_conversion_and_sixteen_bits(pair, tmp_path):
     assert deep.grey and deep.photo_bits == 16
     im = deep.image(0)
     assert im.dtype == np.uint8 and (im == im[..., :1]).all() and im.max() > 0
+
+
+def _right_aligned(src, dst, shift: int):
+    """A copy of scene ``src`` whose 16-bit photos hold ``16 - shift``-bit values, right-aligned."""
+    import cv2
+
+    shutil.copytree(src, dst)
+    for p in (dst / "images").glob("*.png"):
+        im = cv2.imread(str(p), cv2.IMREAD_UNCHANGED)
+        assert cv2.imwrite(str(p), (im.astype(np.uint32) >> shift).astype(np.uint16))
+
+
+@pytest.fixture(scope="module")
+def deep_pair(tmp_path_factory):
+    root = tmp_path_factory.mktemp("deep")
+    full = synthesize(root / "d16", capture={"response": "linear", "bits": 16}, **SMALL)
+    _right_aligned(full.root, root / "d12", 4)
+    return full, root / "d12"
+
+
+def test_twelve_bit_values_in_sixteen_bit_files_are_full_range(deep_pair):
+    """A 12-bit camera's right-aligned values (Mono12 saved by OpenCV or an SDK) are taken as
+    12-bit: the photos read as the full-range capture's (within a code), the decision said."""
+    full, d12 = deep_pair
+    s12 = Scene.load(d12)
+    f16, why16 = full.photo_full_scale()
+    f12, why12 = s12.photo_full_scale()
+    assert (f16, f12) == (65535, 4095) and "12-bit" in why12 and "brightest" in why12
+    for i in range(len(full.frames)):
+        assert np.abs(s12.image(i).astype(int) - full.image(i).astype(int)).max() <= 1
+    from fastneus.data.response import resolve_response
+
+    assert "12-bit values" in resolve_response(s12, [0], "auto")[1]
+
+
+def test_stated_sensor_bits_and_their_errors(deep_pair, tmp_path):
+    full, d12 = deep_pair
+    d = json.loads((d12 / "scene.json").read_text())
+    for bad in (7, 17, 12.5, True, "12"):
+        with pytest.raises(FastneusError) as e:
+            Scene.from_dict(d | {"sensor_bits": bad}, d12)
+        assert "sensor_bits" in str(e.value) and "\n" not in str(e.value)
+    s = Scene.from_dict(d | {"sensor_bits": 16}, d12)  # stated: no guess (the photos stay dim)
+    assert s.photo_full_scale()[0] == 65535 and s.image(0).max() < full.image(0).max()
+    s = Scene.from_dict(d | {"sensor_bits": 12}, d12)
+    assert s.photo_full_scale() == (4095, "12-bit values, scene.json's sensor_bits")
+    assert s.to_dict()["sensor_bits"] == 12
+    too_few = Scene.from_dict(d | {"sensor_bits": 8}, d12)  # values above 255: one line naming the frame
+    with pytest.raises(FastneusError) as e:
+        too_few.image(0)
+    assert "frames[0].image" in str(e.value) and "sensor_bits" in str(e.value)
+    eight = tmp_path / "e"
+    synthesize(eight, capture={"response": "linear"}, **SMALL)
+    with pytest.raises(FastneusError) as e:
+        Scene.from_dict(json.loads((eight / "scene.json").read_text()) | {"sensor_bits": 12}, eight)
+    assert "8-bit" in str(e.value)
