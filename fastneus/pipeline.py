@@ -93,7 +93,8 @@ def finish_run(trainer, console=None, eval_frames: list[int] | None = None, mesh
             mesh = extract_mesh_arrays(trainer.field, scene, res, trainer.device, bound=cfg.rays.bound,
                                        allowed=trainer.seen)
             # normals and learned colours, encoded like the photos
-            mesh = shade_mesh(trainer.field, scene, mesh, trainer.device, response=getattr(trainer, "response", None))
+            mesh = shade_mesh(trainer.field, scene, mesh, trainer.device, response=getattr(trainer, "response", None),
+                              scale=1.0 / getattr(trainer, "photo_gain", 1.0))
             save_mesh(mesh, run / "mesh.ply")
             at = clock.mark("mesh_ready")
             dt = time.perf_counter() - t
@@ -310,6 +311,8 @@ def _train_and_finish(trainer, scene, cfg: Config, out: Path, device: str, conso
         console.print(trainer.hull_note)
         console.print(trainer.bg_note)
         console.print(trainer.response_note)
+        if trainer.level_note:
+            console.print(trainer.level_note, soft_wrap=True, highlight=False, markup=False)
         if trainer.photos_note:
             console.print(trainer.photos_note, soft_wrap=True, highlight=False, markup=False)
         console.print(trainer.blur_note(), soft_wrap=True, highlight=False, markup=False)
@@ -320,6 +323,8 @@ def _train_and_finish(trainer, scene, cfg: Config, out: Path, device: str, conso
                                          "threads": trainer.threads, "masks": trainer.masks_note,
                                          "background_prior": trainer.bg_note, "response": trainer.response_note,
                                          **({"photos": trainer.photos_note} if trainer.photos_note else {}),
+                                         "photo_gain": trainer.photo_gain,
+                                         **({"photo_level": trainer.level_note} if trainer.level_note else {}),
                                          "camera_blur": trainer.blur_decision, "camera_blur_note": trainer.blur_note(),
                                          "exposure": trainer.exposure_decision,
                                          "exposure_note": trainer.exposure_note(),
@@ -411,8 +416,8 @@ def extract_mesh(trainer, resolution: int | None = None):
     res = resolution or trainer.cfg.export.mesh_resolution
     mesh = extract_mesh_arrays(trainer.field, trainer.scene, res, trainer.device, bound=trainer.cfg.rays.bound,
                                allowed=trainer.seen)
-    return shade_mesh(trainer.field, trainer.scene, mesh, trainer.device,
-                      response=getattr(trainer, "response", None)).to_trimesh()
+    return shade_mesh(trainer.field, trainer.scene, mesh, trainer.device, response=getattr(trainer, "response", None),
+                      scale=1.0 / getattr(trainer, "photo_gain", 1.0)).to_trimesh()
 
 
 def evaluate(run: str | os.PathLike, device: str | None = None, scene: str | None = None,

@@ -39,7 +39,8 @@ def _mesh(args) -> int:
     scene, tr = open_run(args.run, device, args.scene)
     mesh = extract_mesh_arrays(tr.field, scene, args.resolution or tr.cfg.export.mesh_resolution, tr.device,
                                bound=tr.cfg.rays.bound, allowed=tr.seen)
-    mesh = shade_mesh(tr.field, scene, mesh, tr.device)
+    mesh = shade_mesh(tr.field, scene, mesh, tr.device, response=getattr(tr, "response", None),
+                      scale=1.0 / getattr(tr, "photo_gain", 1.0))
     out = Path(args.out) if args.out else Path(args.run) / "mesh.ply"
     with confined(out.parent):  # mesh.ply as a link into another folder is refused, not followed
         save_mesh(mesh, out)

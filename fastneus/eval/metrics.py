@@ -170,9 +170,10 @@ def render_frames(trainer, frames: list[int], chunk: int = 8192) -> dict[int, di
             bg = cfg.rays.background * (1 - r["opacity"])[:, None]
             color, texture = r["color"] + bg, r["texture"] + bg
         photo = bank.image(a).cpu().numpy()
+        back = 1.0 / float(getattr(trainer, "photo_gain", 1.0))  # trained on scaled photos (illum.level)
         out[i] = {
-            "color": color.numpy().reshape(h, w, 3) * gain.get(i, 1.0),  # the photo's prediction (linear)
-            "texture": texture.numpy().reshape(h, w, 3),
+            "color": color.numpy().reshape(h, w, 3) * (gain.get(i, 1.0) * back),  # the photo's prediction (linear)
+            "texture": texture.numpy().reshape(h, w, 3) * back,
             "opacity": r["opacity"].numpy().reshape(h, w),
             "depth": depth_to_z(scene, i, r["depth"].numpy() / np.maximum(r["opacity"].numpy(), 1e-6), h, w),
             "normal": r["normal"].numpy().reshape(h, w, 3),
@@ -206,7 +207,10 @@ def image_metrics(scene, renders: dict[int, dict]) -> dict:
 
 
 def illumination_metrics(trainer) -> dict:
-    i_r, i_b = (float(x.detach()) for x in trainer.illumination())
+    if hasattr(trainer, "photo_illumination"):  # in the photos' units (illum.level)
+        i_r, i_b = trainer.photo_illumination()
+    else:
+        i_r, i_b = (float(x.detach()) for x in trainer.illumination())
     out = {"i_r": i_r, "i_b": i_b}
     ill = trainer.scene.illumination
     if ill is not None and ill.known:

@@ -532,7 +532,8 @@ def extract_mesh(field, scene, resolution: int, device, bound: str = "sphere",
     return extract_mesh_arrays(field, scene, resolution, device, bound=bound, allowed=allowed, **kw).to_trimesh()
 
 
-def shade_mesh(field, scene, mesh: MeshArrays, device, chunk: int = 1 << 15, response=None) -> MeshArrays:
+def shade_mesh(field, scene, mesh: MeshArrays, device, chunk: int = 1 << 15, response=None,
+               scale: float = 1.0) -> MeshArrays:
     """Add vertex normals and colours: the SDF gradient and the learned pattern-free colour D.
 
     D is evaluated looking at each vertex head-on (view direction = -normal), the same
@@ -546,6 +547,8 @@ def shade_mesh(field, scene, mesh: MeshArrays, device, chunk: int = 1 << 15, res
         device: where the field is evaluated.
         chunk: vertices per field evaluation (memory).
         response: the camera response the colours are encoded with (``fastneus.data.response``).
+        scale: times the model's colour before encoding (``1 / Trainer.photo_gain``: back to the
+            photos' units when a dim capture was trained brighter).
     Returns:
         ``mesh`` with ``normals`` [V, 3] float32 and ``colors`` [V, 3] uint8 set.
     """
@@ -558,7 +561,7 @@ def shade_mesh(field, scene, mesh: MeshArrays, device, chunk: int = 1 << 15, res
         with torch.no_grad():  # sdf_and_grad computes the analytic gradient locally even so
             _, geo, grad, _ = field.sdf_and_grad(x)
             n = grad / grad.norm(dim=-1, keepdim=True).clamp_min(1e-12)
-            col = field.color(x, grad, -n, geo).clamp(0, 1)
+            col = (field.color(x, grad, -n, geo) * scale).clamp(0, 1)
             if response is not None:
                 col = encode(col, response)
             colors.append((col * 255 + 0.5).to(torch.uint8).cpu())

@@ -238,7 +238,7 @@ class ProgressWriter:
             color = rig.composite(r["color"], r, cfg.rays.background)
         else:
             color = r["color"] + cfg.rays.background * (1 - r["opacity"])[:, None]
-        color = color.clamp(0, 1).cpu().numpy().reshape(h, w, 3)
+        color = (color / float(getattr(tr, "photo_gain", 1.0))).clamp(0, 1).cpu().numpy().reshape(h, w, 3)
         photo = bank.image(0).cpu().numpy()
         if (w, h) != (W, H):
             photo = cv2.resize(photo, (w, h), interpolation=cv2.INTER_AREA)

@@ -200,6 +200,35 @@ def halo_weights(codes: torch.Tensor, lut: torch.Tensor | None, background: floa
     return out
 
 
+# the photos' level (illum.level=auto): where the brightest 0.1 % of pixels lie, linear. The
+# priors' thresholds and the loss's balance against the eikonal and mask terms were set on captures
+# whose level is 0.13-0.25 (dark rooms) to 1 (lit ones); a 4x underexposed dark room (level 0.047)
+# without masks came out as a few fragments (GT->rec 442 mm), and at this gain 11.5 mm
+LEVEL_LOW = 0.1    # below it the photos are scaled for training...
+LEVEL_REF = 0.18   # ...so that their level is this
+LEVEL_MAX_GAIN = 16.0
+
+
+def photo_level(scene, frames: list[int], lut: np.ndarray | None, max_frames: int = 8) -> float:
+    """The 99.9th percentile of the pixels' brightest channel (linear, through ``lut``; None = code
+    / 255) over up to ``max_frames`` of ``frames`` spread evenly: where the bright laser lines or the
+    lit surface lie, whatever share of the image the object fills."""
+    pick = [frames[int(k)] for k in np.unique(np.linspace(0, len(frames) - 1, min(max_frames, len(frames))).round())]
+    hist = np.zeros(256, dtype=np.int64)
+    for i in pick:
+        hist += np.bincount(scene.image(i).max(axis=2).ravel(), minlength=256)
+    code = int(np.searchsorted(np.cumsum(hist), 0.999 * hist.sum()))
+    return float(lut[code]) if lut is not None else code / 255.0
+
+
+def level_gain(level: float) -> float:
+    """The photos' gain for training (illum.level=auto): 1 at or above :data:`LEVEL_LOW`, else
+    :data:`LEVEL_REF` / level, at most :data:`LEVEL_MAX_GAIN` (1 for an all-black capture)."""
+    if level >= LEVEL_LOW or level <= 0:
+        return 1.0
+    return float(min(LEVEL_REF / level, LEVEL_MAX_GAIN))
+
+
 def lut_mean(hist: torch.Tensor, lut: torch.Tensor, n: int) -> torch.Tensor:
     """[3] mean decoded colour from per-channel code histograms ``hist`` [3, 256] of ``n`` pixels."""
     return ((hist.double() @ lut.double().cpu()) / max(1, n)).float()

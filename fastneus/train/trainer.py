@@ -28,7 +28,8 @@ from fastneus.train.progress import ProgressWriter
 from fastneus.train.rig import Rig
 from fastneus.train.rig import load_into as rig_load
 from fastneus.train.rig import state_of as rig_state
-from fastneus.train.rays import RayBank, build_projection, halo_radius, pattern_images, photo_masks
+from fastneus.train.rays import (LEVEL_LOW, RayBank, build_projection, halo_radius, level_gain, pattern_images,
+                                 photo_level, photo_masks)
 from fastneus.data.response import decode_lut, is_identity, resolve_response
 
 
@@ -194,6 +195,18 @@ class Trainer:
         want_bg = not self.masks_used and cfg.loss.bg_prior != "off" and cfg.loss.bg_weight > 0
         # photos -> linear light through a 256-entry table in the bank: the model, i_r, i_b are linear
         self.response, self.response_note = resolve_response(scene, self.frames, cfg.illum.response)
+        # a dim capture is scaled up for training (illum.level; reported values are divided back)
+        lut = None if is_identity(self.response) else decode_lut(self.response)
+        self.photo_gain, self.level_note = 1.0, None
+        if cfg.illum.level == "auto":
+            level = photo_level(scene, self.frames, lut)
+            self.photo_gain = level_gain(level)
+            if self.photo_gain > 1.0:
+                lut = np.minimum((lut if lut is not None else np.arange(256) / 255.0) * self.photo_gain,
+                                 1.0).astype(np.float32)
+                self.level_note = (f"photo level: auto -> the brightest 0.1 % of pixels at {level:.3g} (linear), under "
+                                   f"{LEVEL_LOW:g}: trained {self.photo_gain:.3g}x brighter; i_b, textures and colours "
+                                   "are reported in the photos' units")
         self.photos_note = grey_photos_note(scene, self.frames)  # None for colour photos
         # multi-shot viewpoints (e.g. Gray code) share one ray per pixel across their shots (fastneus.train.multishot)
         self.bank = make_bank(scene, self.frames, self.device, cfg, load_masks=self.masks_used,
@@ -201,7 +214,7 @@ class Trainer:
                               background=cfg.rays.background if want_bg else None, bg_tolerance=cfg.loss.bg_tolerance,
                               bg_noise_k=cfg.loss.bg_noise_k, bg_cap=cfg.loss.fg_threshold, fg_relative=cfg.loss.fg_relative,
                               refraction=cfg.rig.refraction,
-                              lut=None if is_identity(self.response) else decode_lut(self.response))
+                              lut=lut)
         if getattr(self.bank, "empty_masks", None):  # all-zero masks: the object is outside those views (or a wrong file)
             self.masks_note += f"; warning: empty (all-zero) mask {', '.join(self.bank.empty_masks)}"
         # rays end deep inside the object (occupancy.stop_rays): their samples past it carry no weight
@@ -284,7 +297,7 @@ class Trainer:
         if cfg.illum.illum_init == "ones" or ill is None:
             ir0, ib0 = 1.0, 1.0
         else:
-            ir0, ib0 = float(ill.i_r), float(ill.i_b)
+            ir0, ib0 = float(ill.i_r), float(ill.i_b) * self.photo_gain  # i_b is light: in the trained units
         # log-parametrised so i_r, i_b stay positive
         self.log_ir = torch.nn.Parameter(torch.tensor([math.log(max(ir0, 1e-4))], device=self.device))
         self.log_ib = torch.nn.Parameter(torch.tensor([math.log(max(ib0, 1e-4))], device=self.device))
@@ -369,6 +382,12 @@ class Trainer:
     def blur_pending(self) -> bool:
         """camera_blur=auto has an estimate still to make in this run."""
         return bool(self.blur_due)
+
+    def photo_illumination(self) -> tuple[float, float]:
+        """(i_r, i_b) in the photos' own units, for reports: i_b is light and was learned on photos
+        scaled by ``photo_gain``; i_r is a ratio of lights and needs no scaling."""
+        i_r, i_b = (float(x.detach()) for x in self.illumination())
+        return i_r, i_b / self.photo_gain
 
     def illumination(self) -> tuple[torch.Tensor, torch.Tensor]:
         return self.log_ir.exp(), self.log_ib.exp()
@@ -899,7 +918,7 @@ class Trainer:
                 if self.step % c.run.log_every == 0 or end or rec is None and self.step == 1:
                     if rec is not None:
                         now = time.perf_counter()
-                        i_r, i_b = (float(x.detach()) for x in self.illumination())
+                        i_r, i_b = self.photo_illumination()
                         last = {"step": self.step, "time": round(self.elapsed, 3), "progress": round(self.progress(), 4),
                                 "loss": float(rec["loss"]),
                                 "l1": float(rec["l1"]), "psnr": _psnr(float(rec["mse"])), "eik": float(rec["eik"]),
