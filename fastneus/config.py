@@ -288,10 +288,14 @@ class IllumSection:
     illum_init: str = knob("scene", "start i_r, i_b at the scene's values | ones", choices=("scene", "ones"))
     response: str = knob("auto", "camera response the photos are decoded with: auto (scene.json, else the "
                          "files' tags, else srgb) | linear | srgb | gamma=G")
-    level: str = knob("auto", "auto: photos whose brightest 0.1 % of pixels are below 0.1 (linear) are scaled for "
-                      "training so that it is 0.18 (at most 16x; the priors' thresholds were set on captures that "
+    level: str = knob("auto", "auto: photos whose brightest 0.1 % of pixels are below 0.12 (linear) are scaled for "
+                      "training up to 0.12-0.18 (at most 16x; the priors' thresholds were set on captures that "
                       "bright: a 4x underexposed dark room without masks came out empty); i_b, textures and colours "
                       "are reported in the photos' own units | off", choices=("auto", "off"))
+    black: str = knob("auto", "auto: a camera's black level (the photos' most common value when it is a dark floor "
+                      "under 0.08 linear that a quarter of the pixels sit on and almost none below: a raw sensor's "
+                      "pedestal) is subtracted before training, so the background prior finds the backdrop at 0 | off",
+                      choices=("auto", "off"))
     exposure: str = knob("auto", "learn a gain per photo (auto-exposure; the first training frame's is 1): auto "
                          "(at exposure_at_frac of the run, each photo's gain is fit against a render seen along each "
                          "surface's normal, on four ray batches; learned from then on when the batches agree on a "

@@ -1,5 +1,6 @@
-"""illum.level: a dim capture is trained brighter (the priors' thresholds were set on captures of a
-normal level) and everything reported is divided back into the photos' own units."""
+"""illum.level and illum.black: a dim capture is trained brighter (the priors' thresholds were set on
+captures of a normal level) and everything reported is divided back into the photos' own units; a
+raw camera's black level is taken off before training."""
 from __future__ import annotations
 
 import json
@@ -12,7 +13,7 @@ import pytest
 from fastneus.config import load_config
 from fastneus.data import Scene
 from fastneus.synth.render import synthesize
-from fastneus.train.rays import LEVEL_LOW, LEVEL_MAX_GAIN, LEVEL_REF, level_gain, photo_level
+from fastneus.train.rays import LEVEL_LOW, LEVEL_MAX_GAIN, LEVEL_REF, black_level, level_gain, photo_level
 
 KW = dict(shape="torus", views=3, size=(40, 40), pattern="crosslaser", illum="dark", seed=0, device="cpu",
           progress=False, contact_sheet=False)
@@ -22,9 +23,60 @@ TINY = ["steps=40", "log_every=10", "mesh_resolution=40", "occ_resolution=32", "
 
 def test_level_gain_rule():
     assert level_gain(LEVEL_LOW) == 1.0 and level_gain(0.9) == 1.0 and level_gain(0.0) == 1.0
-    x = float(np.random.default_rng().uniform(LEVEL_REF / LEVEL_MAX_GAIN + 1e-3, LEVEL_LOW - 1e-3))
-    assert level_gain(x) == pytest.approx(LEVEL_REF / x)
+    assert level_gain(LEVEL_LOW * (1 - 1e-6)) == pytest.approx(1.0, abs=1e-4)  # continuous at LEVEL_LOW
+    rng = np.random.default_rng()
+    x = float(rng.uniform(LEVEL_REF / LEVEL_MAX_GAIN + 1e-3, 0.5 * LEVEL_LOW))
+    assert level_gain(x) == pytest.approx(LEVEL_REF / x)  # dim: trained at LEVEL_REF
+    ls = np.sort(rng.uniform(0.5 * LEVEL_LOW, LEVEL_LOW, 20))
+    trained = [level_gain(v) * v for v in ls]  # between: from LEVEL_REF down to LEVEL_LOW
+    assert all(LEVEL_LOW - 1e-9 <= t <= LEVEL_REF + 1e-9 for t in trained) and np.all(np.diff(trained) <= 1e-12)
     assert level_gain(1e-4) == LEVEL_MAX_GAIN
+
+
+def test_black_level_rule():
+    """A pedestal (most pixels on one dark value, none below half of it) is found; a dark surface
+    with darker pixels around it, a black backdrop at 0 and a grey backdrop are not."""
+    rng = np.random.default_rng()
+    lut = (np.arange(256) / 255.0).astype(np.float32)
+    c = int(rng.integers(3, 18))  # a pedestal of 1-7 % of full scale
+    hist = np.zeros(256, np.int64)
+    hist[c] = 6000
+    hist[c + 1] = 1500
+    hist[c + 2:200] = 10  # the object and its lines above it
+    assert black_level(hist, lut) == pytest.approx(c / 255.0)
+    shadow = hist.copy()
+    shadow[1:c // 2 + 1] += 100  # darker pixels under it: a dark surface, not a pedestal
+    assert black_level(shadow, lut) == 0.0
+    zero = hist.copy()
+    zero[0] = 9000
+    assert black_level(zero, lut) == 0.0  # the backdrop already at 0
+    grey = np.zeros(256, np.int64)
+    grey[80] = 6000
+    grey[81:200] = 10
+    assert black_level(grey, lut) == 0.0  # a grey backdrop (0.31) is no black level
+    assert black_level(hist, lut ** 2.2) == pytest.approx(float((c / 255.0) ** 2.2))  # through a response
+
+
+def test_pedestal_is_taken_off(bright_dim, tmp_path):
+    """A copy of the capture with a camera's black level (every value + 8 codes): training sees the
+    pedestal removed (the backdrop at 0 again), the renders compared with the photos get it back."""
+    from fastneus.train.trainer import Trainer
+
+    bright, _ = bright_dim
+    ped = tmp_path / "ped"
+    shutil.copytree(bright.root, ped)
+    for p in (ped / "images").glob("*.png"):
+        im = cv2.imread(str(p), cv2.IMREAD_UNCHANGED)
+        assert cv2.imwrite(str(p), np.minimum(im.astype(np.int32) + 8, 255).astype(np.uint8))
+    nomask = TINY + ["masks=off"]  # the background prior looks for the backdrop
+    t = Trainer(Scene.load(ped), load_config("cpu-quick", nomask), tmp_path / "r", "cpu")
+    assert t.photo_black == pytest.approx(8 / 255.0) and "black level" in t.level_note
+    assert float(t.bank.lut[8]) == 0.0 and float(t.bank.lut[9]) > 0.0
+    ref = Trainer(bright, load_config("cpu-quick", nomask), tmp_path / "b", "cpu")
+    assert ref.photo_black == 0.0 and ref.bank.bg_fraction > 0.5
+    assert t.bank.bg_fraction == pytest.approx(ref.bank.bg_fraction, abs=0.02)  # the backdrop found again
+    off = Trainer(Scene.load(ped), load_config("cpu-quick", nomask + ["illum.black=off"]), tmp_path / "o", "cpu")
+    assert off.photo_black == 0.0 and off.bank.bg_fraction < 0.05  # over the pedestal: no backdrop at 0
 
 
 @pytest.fixture(scope="module")

@@ -171,8 +171,10 @@ def render_frames(trainer, frames: list[int], chunk: int = 8192) -> dict[int, di
             color, texture = r["color"] + bg, r["texture"] + bg
         photo = bank.image(a).cpu().numpy()
         back = 1.0 / float(getattr(trainer, "photo_gain", 1.0))  # trained on scaled photos (illum.level)
+        black = float(getattr(trainer, "photo_black", 0.0))  # and without the camera's black level (illum.black)
         out[i] = {
-            "color": color.numpy().reshape(h, w, 3) * (gain.get(i, 1.0) * back),  # the photo's prediction (linear)
+            # the photo's prediction (linear; with the black level taken off in training, put back)
+            "color": color.numpy().reshape(h, w, 3) * (gain.get(i, 1.0) * back) * (1.0 - black) + black,
             "texture": texture.numpy().reshape(h, w, 3) * back,
             "opacity": r["opacity"].numpy().reshape(h, w),
             "depth": depth_to_z(scene, i, r["depth"].numpy() / np.maximum(r["opacity"].numpy(), 1e-6), h, w),

@@ -202,31 +202,70 @@ def halo_weights(codes: torch.Tensor, lut: torch.Tensor | None, background: floa
 
 # the photos' level (illum.level=auto): where the brightest 0.1 % of pixels lie, linear. The
 # priors' thresholds and the loss's balance against the eikonal and mask terms were set on captures
-# whose level is 0.13-0.25 (dark rooms) to 1 (lit ones); a 4x underexposed dark room (level 0.047)
-# without masks came out as a few fragments (GT->rec 442 mm), and at this gain 11.5 mm
-LEVEL_LOW = 0.1    # below it the photos are scaled for training...
-LEVEL_REF = 0.18   # ...so that their level is this
+# whose level is 0.11-0.25 (dark rooms) to 1 (lit ones); a 4x underexposed dark room (level 0.048)
+# without masks came out as a few fragments (GT->rec 442 mm; 12.2 mm scaled to 0.18, 13.1 mm to
+# 0.12). Photos under LEVEL_LOW are trained at a level that rises from LEVEL_LOW to LEVEL_REF as
+# theirs falls to LEVEL_LOW / 2 (continuous: a capture just under LEVEL_LOW changes by little)
+LEVEL_LOW = 0.12
+LEVEL_REF = 0.18
 LEVEL_MAX_GAIN = 16.0
 
 
-def photo_level(scene, frames: list[int], lut: np.ndarray | None, max_frames: int = 8) -> float:
-    """The 99.9th percentile of the pixels' brightest channel (linear, through ``lut``; None = code
-    / 255) over up to ``max_frames`` of ``frames`` spread evenly: where the bright laser lines or the
-    lit surface lie, whatever share of the image the object fills."""
+# a camera's black level (illum.black=auto): the photos' most common value when it is a dark floor
+BLACK_MAX = 0.08     # linear: a pedestal, not a grey backdrop or a dark surface
+BLACK_SHARE = 0.25   # of the pixels within [0.8, 1.25] x of it (the backdrop of a dark room)
+BLACK_BELOW = 0.005  # at most this share darker than half of it: nothing lies under a pedestal
+
+
+def photo_histogram(scene, frames: list[int], max_frames: int = 8) -> np.ndarray:
+    """[256] int64 counts of the pixels' brightest channel code over up to ``max_frames`` of
+    ``frames`` spread evenly."""
     pick = [frames[int(k)] for k in np.unique(np.linspace(0, len(frames) - 1, min(max_frames, len(frames))).round())]
     hist = np.zeros(256, dtype=np.int64)
     for i in pick:
         hist += np.bincount(scene.image(i).max(axis=2).ravel(), minlength=256)
+    return hist
+
+
+def photo_level(scene, frames: list[int], lut: np.ndarray | None, max_frames: int = 8,
+                hist: np.ndarray | None = None) -> float:
+    """The 99.9th percentile of the pixels' brightest channel (linear, through ``lut``; None = code
+    / 255) over up to ``max_frames`` of ``frames`` spread evenly (:func:`photo_histogram`, or
+    ``hist``): where the bright laser lines or the lit surface lie, whatever share of the image the
+    object fills."""
+    hist = photo_histogram(scene, frames, max_frames) if hist is None else hist
     code = int(np.searchsorted(np.cumsum(hist), 0.999 * hist.sum()))
     return float(lut[code]) if lut is not None else code / 255.0
 
 
+def black_level(hist: np.ndarray, lut: np.ndarray | None) -> float:
+    """A camera's black level (a raw sensor's pedestal) from :func:`photo_histogram`, linear; 0
+    when there is none. The most common value is one when it is dark (<= :data:`BLACK_MAX`), a
+    quarter of the pixels or more lie near it (a dark room's backdrop) and almost none below half
+    of it: a dark surface or shadow has darker pixels around it, a pedestal has none. The
+    background prior looks for the backdrop at 0: over a pedestal of 3 % it found none, and the run
+    without masks came out as fragments (259 mm; 12.5 mm with the pedestal taken off)."""
+    vals = lut.astype(np.float64) if lut is not None else np.arange(256) / 255.0
+    m = int(np.argmax(hist))
+    b = float(vals[m])
+    if not 0 < b <= BLACK_MAX:
+        return 0.0
+    n = max(int(hist.sum()), 1)
+    near = hist[(vals >= 0.8 * b) & (vals <= 1.25 * b)].sum() / n
+    below = hist[vals < 0.5 * b].sum() / n
+    return b if near >= BLACK_SHARE and below <= BLACK_BELOW else 0.0
+
+
 def level_gain(level: float) -> float:
-    """The photos' gain for training (illum.level=auto): 1 at or above :data:`LEVEL_LOW`, else
-    :data:`LEVEL_REF` / level, at most :data:`LEVEL_MAX_GAIN` (1 for an all-black capture)."""
+    """The photos' gain for training (illum.level=auto): 1 at or above :data:`LEVEL_LOW`; below it
+    the trained level rises linearly from :data:`LEVEL_LOW` to :data:`LEVEL_REF` as ``level`` falls
+    to half of :data:`LEVEL_LOW`, and stays at :data:`LEVEL_REF` under that; at most
+    :data:`LEVEL_MAX_GAIN` (1 for an all-black capture)."""
     if level >= LEVEL_LOW or level <= 0:
         return 1.0
-    return float(min(LEVEL_REF / level, LEVEL_MAX_GAIN))
+    half = 0.5 * LEVEL_LOW
+    target = LEVEL_REF if level <= half else LEVEL_LOW + (LEVEL_REF - LEVEL_LOW) * (LEVEL_LOW - level) / half
+    return float(min(target / level, LEVEL_MAX_GAIN))
 
 
 def lut_mean(hist: torch.Tensor, lut: torch.Tensor, n: int) -> torch.Tensor:
