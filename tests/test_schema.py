@@ -113,6 +113,7 @@ def test_saved_variants_validate(validator, synth_scenes, tmp_path):
         pj.proj_to_cam = None
     s.cameras["cam0"].dist = np.array([0.01, -0.002, 0.0, 0.0, 0.0])
     s.gt_mesh = None
+    s.sensor_bits = 12  # (a field for 16-bit photos; the loader checks that against the files)
     s.save(tmp_path)
     data = _load_json(tmp_path)
     assert all(p["proj_to_cam"] is None for p in data["projectors"].values())
@@ -232,6 +233,8 @@ MUTATIONS = {
                                                            _first(d, "projectors"), "port")(d)),
     "gt key unknown": ("crosslaser", _set({"albedo": "gt/000_albedo.png"}, "frames", 0, "gt")),
     "unsafe camera id": ("crosslaser", lambda d: _set(d["cameras"].pop(_first(d, "cameras")), "cameras", "../cam")(d)),
+    "sensor_bits too many": ("crosslaser", _set(17, "sensor_bits")),
+    "sensor_bits not a whole number": ("crosslaser", _set(12.5, "sensor_bits")),
 }
 
 
