@@ -77,6 +77,22 @@ def test_exposure_gains_scale_frames(tmp_path, ideal):
     assert g[0] == 1.0 and g.min() >= 0.8 - 1e-9 and g.max() <= 1.25 + 1e-9 and g.std() > 0.05
 
 
+def test_white_balance_gains_scale_each_channel(tmp_path, ideal):
+    """``white_balance``: every channel of a frame scaled by its own gain (frame 0 by 1), saved."""
+    from fastneus.synth.capture import channel_gains
+
+    _, ref, masks = ideal
+    scene, img, _ = _render(tmp_path, "wb", {"white_balance": 0.2})
+    wb = np.asarray(scene.meta["capture"]["white_balance_gains"])
+    assert wb.shape == (len(scene.frames), 3) and np.all(wb[0] == 1.0)
+    assert np.all((wb >= 1 / 1.2 - 1e-6) & (wb <= 1.2 + 1e-6)) and wb[1:].std() > 0.02
+    for f in range(len(scene.frames)):
+        for c in range(3):
+            sel = masks[f] & (ref[f][..., c] > 0.1) & (ref[f][..., c] * wb[f, c] < 0.95)
+            assert np.median(img[f][..., c][sel] / ref[f][..., c][sel]) == pytest.approx(wb[f, c], abs=0.02)
+    assert np.array_equal(channel_gains(5, 0.0, 1), np.ones((5, 3)))
+
+
 def test_blur_smooths_and_keeps_light(tmp_path, ideal):
     _, ref, _ = ideal
     _, img, _ = _render(tmp_path, "blur", {"blur": 0.7})

@@ -52,7 +52,9 @@ def register(subparsers) -> None:
                        ("read-noise", "read-noise sigma (linear units)"),
                        ("shot-noise", "shot-noise variance per unit signal"),
                        ("interreflection", "one diffuse bounce between surfaces, its strength (1 = physical; "
-                                           "not in --realistic)")):
+                                           "not in --realistic)"),
+                       ("white-balance", "per-photo auto white balance: each colour channel's gain spread "
+                                         "(0.1 = 0.91..1.1; not in --realistic)")):
         g.add_argument(f"--{name}", type=float, default=None, help=what)
     g.add_argument("--bits", type=int, default=None, choices=(8, 16),
                    help="bits per channel of the photos (16: a machine-vision camera's PNGs; default 8)")
@@ -86,7 +88,7 @@ def capture_options(args) -> dict:
     opts = {"response": args.response, "exposure": args.exposure, "speckle": args.speckle,
             "specular": args.specular, "shininess": args.shininess, "blur": args.defocus,
             "supersample": args.supersample, "vignetting": args.vignetting, "read_noise": args.read_noise, "shot_noise": args.shot_noise,
-            "interreflection": args.interreflection, "bits": args.bits,
+            "interreflection": args.interreflection, "bits": args.bits, "white_balance": args.white_balance,
             "mono": 1 if getattr(args, "mono", False) else None}
     return {k: v for k, v in opts.items() if v is not None}
 

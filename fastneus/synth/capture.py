@@ -60,6 +60,9 @@ class Capture:
         shot_noise: shot-noise variance per unit of linear signal.
         interreflection: strength of one diffuse bounce between surfaces (1 = physical); 0 = none.
         bits: bits per channel of the photos written (8, or 16 as a machine-vision camera's PNGs).
+        white_balance: per-photo auto white balance: each colour channel's gain log-uniform in
+            [1/(1+w), 1+w] per frame on top of the exposure (frame 0: 1); 0 = none. Not in the
+            realistic mix.
         mono: 1 = a monochrome camera: each pixel records the mean of the light's three channels
             (:func:`fastneus.light.grey_rgb`'s rule), written as grey PNGs; so is the pattern-free
             ground truth. 0 = colour.
@@ -77,11 +80,16 @@ class Capture:
     shot_noise: float = 0.0
     interreflection: float = 0.0
     bits: int = 8
+    white_balance: float = 0.0
     mono: int = 0
 
-    def to_meta(self, gains: list[float]) -> dict:
-        """The settings and the true per-frame gains, for ``scene.json``'s ``meta.capture``."""
-        return {**asdict(self), "gains": [round(float(g), 6) for g in gains]}
+    def to_meta(self, gains: list[float], white: np.ndarray | None = None) -> dict:
+        """The settings and the true per-frame gains (and white-balance gains [F, 3] when
+        ``white_balance`` is set), for ``scene.json``'s ``meta.capture``."""
+        out = {**asdict(self), "gains": [round(float(g), 6) for g in gains]}
+        if self.white_balance > 0 and white is not None:
+            out["white_balance_gains"] = [[round(float(v), 6) for v in row] for row in white]
+        return out
 
 
 SUPERSAMPLE = 4  # rays per pixel side of a blurred capture (the laser lines are ~0.6 px wide at 128 px)
@@ -90,7 +98,8 @@ REALISTIC = dict(response="srgb", exposure=0.25, speckle=0.3, specular=0.25, shi
                  vignetting=0.25, read_noise=0.002, shot_noise=2e-4)
 _LIMITS = {"exposure": (0.0, 4.0), "speckle": (0.0, 1.0), "specular": (0.0, 10.0), "shininess": (1.0, 1e4),
            "blur": (0.0, 5.0), "supersample": (1, 8), "vignetting": (0.0, 0.95), "read_noise": (0.0, 0.5), "shot_noise": (0.0, 0.5),
-           "interreflection": (0.0, 4.0), "bits": (8, 16), "mono": (0, 1)}
+           "interreflection": (0.0, 4.0), "bits": (8, 16), "mono": (0, 1),
+           "white_balance": (0.0, 1.0)}
 
 
 def make_capture(capture: dict | Capture | None = None, realistic: bool = False) -> Capture | None:
@@ -139,6 +148,16 @@ def frame_gains(n: int, spread: float, seed: int) -> np.ndarray:
         rng = np.random.default_rng((seed, 11))
         a = math.log1p(spread)
         g[1:] = np.exp(rng.uniform(-a, a, n - 1))
+    return g
+
+
+def channel_gains(n: int, spread: float, seed: int) -> np.ndarray:
+    """[n, 3] per-channel white-balance gains: log-uniform in [1/(1+spread), 1+spread] per channel,
+    frame 0 = 1 (the anchor)."""
+    g = np.ones((n, 3))
+    if spread > 0 and n > 1:
+        a = math.log1p(spread)
+        g[1:] = np.exp(np.random.default_rng((seed, 12)).uniform(-a, a, (n - 1, 3)))
     return g
 
 
@@ -198,7 +217,7 @@ def sensor_pixels(img: torch.Tensor, sigma: float, sub: int) -> torch.Tensor:
     return t[0].permute(1, 2, 0).contiguous()
 
 
-def finish(img: torch.Tensor, cap: Capture, gain: float, key: tuple, blurred: bool = False) -> torch.Tensor:
+def finish(img: torch.Tensor, cap: Capture, gain, key: tuple, blurred: bool = False) -> torch.Tensor:
     """The camera: linear radiance [H, W, 3] -> encoded values in [0, 1] (before 8-bit rounding).
 
     Blur (unless ``blurred``: :func:`sensor_pixels` formed the pixels), vignetting, exposure gain,
@@ -209,7 +228,7 @@ def finish(img: torch.Tensor, cap: Capture, gain: float, key: tuple, blurred: bo
         x = gaussian_blur(x, cap.blur, "replicate")
     if cap.vignetting > 0:
         x = x * vignette(x.shape[0], x.shape[1], cap.vignetting, x.device)
-    x = x * float(gain)
+    x = x * torch.as_tensor(np.asarray(gain, dtype=np.float32), device=x.device)  # scalar or [3] (white balance)
     if cap.mono:  # one sensor value per pixel: the noise below is drawn once, not per channel
         x = x.mean(dim=-1, keepdim=True)
     if cap.read_noise > 0 or cap.shot_noise > 0:

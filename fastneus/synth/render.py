@@ -31,7 +31,8 @@ from fastneus.light.patterns import pattern_kinds, sequence_kinds
 from fastneus.light.patterns import make_pattern, write_png
 from fastneus.geometry.projection import Z_MIN, pixel_rays, project_points, refract_rays, sample_pattern
 from fastneus.synth.albedo import Albedo
-from fastneus.synth.capture import apply_speckle, blinn_phong, finish, frame_gains, make_capture, sensor_pixels
+from fastneus.synth.capture import (apply_speckle, blinn_phong, channel_gains, finish, frame_gains, make_capture,
+                                    sensor_pixels)
 from fastneus.synth.shapes import load_mesh, make_shape, normalise_mesh
 from fastneus.synth.water import WATER, WATER_PORT, Water, port_exit
 
@@ -347,6 +348,7 @@ def _synthesize(out, shape, mesh, views, size, pattern, illum, albedo, noise, se
     poses = [np.asarray(p, dtype=np.float64) for p in poses]
     n_views, n_shots = len(poses), len(shots)
     gains = frame_gains(n_views * n_shots, cap.exposure if cap else 0.0, seed)  # frame 0 = 1
+    wb = channel_gains(n_views * n_shots, cap.white_balance if cap else 0.0, seed)  # [F, 3], frame 0 = 1
 
     for d in _OUR_DIRS:
         (out / d).mkdir(exist_ok=True)
@@ -572,7 +574,7 @@ def _synthesize(out, shape, mesh, views, size, pattern, illum, albedo, noise, se
                             lin = lin + _noise((H * W, 3), noise, (seed, 3, fi), dev) * (~hit)[:, None]
                         lin[hidx] = lin[hidx] + _noise((nv, 3), noise, (seed, 2, fi), dev)
                         lin = lin.view(H, W, 3)
-                    img[:] = _quantise(finish(lin, cap, gains[fi], (seed, 9, fi), blurred=sub > 1).reshape(-1, 3), bits)
+                    img[:] = _quantise(finish(lin, cap, gains[fi] * wb[fi], (seed, 9, fi), blurred=sub > 1).reshape(-1, 3), bits)
                 else:
                     if wet:
                         img[:] = _quantise(water.background() + _noise((H * W, 3), noise, (seed, 3, fi), dev))
@@ -611,7 +613,7 @@ def _synthesize(out, shape, mesh, views, size, pattern, illum, albedo, noise, se
               **({"projector_blur_sigma_px": float(projector_blur), "projector_blur_kernel": taps.tolist()}
                  if taps is not None else {}),
               **({"medium": dict(WATER, kind="water")} if wet else {}),
-              **({"capture": cap.to_meta(gains)} if cap is not None else {})})
+              **({"capture": cap.to_meta(gains, wb)} if cap is not None else {})})
     if contact_sheet and sheet_rows:
         write_png(out / "contact_sheet.png", _contact_sheet(sheet_rows))
     scene.save(out)
