@@ -13,7 +13,8 @@ import pytest
 from fastneus.config import load_config
 from fastneus.data import Scene
 from fastneus.synth.render import synthesize
-from fastneus.train.rays import LEVEL_LOW, LEVEL_MAX_GAIN, LEVEL_REF, black_level, level_gain, photo_level
+from fastneus.train.rays import (LEVEL_LOW, LEVEL_MAX_GAIN, LEVEL_REF, black_level, level_gain, photo_histogram,
+                                 photo_level)
 
 KW = dict(shape="torus", views=3, size=(40, 40), pattern="crosslaser", illum="dark", seed=0, device="cpu",
           progress=False, contact_sheet=False)
@@ -98,11 +99,12 @@ def bright_dim(tmp_path_factory):
 def test_photo_level_reads_the_bright_end(bright_dim):
     bright, dim = bright_dim
     frames = list(range(len(bright.frames)))
-    lb, ld = photo_level(bright, frames, None), photo_level(dim, frames, None)
+    hb, hd = photo_histogram(bright, frames), photo_histogram(dim, frames)
+    lb, ld = photo_level(hb, None), photo_level(hd, None)
     assert lb >= LEVEL_LOW and ld < LEVEL_LOW
     assert ld == pytest.approx(0.2 * lb, abs=1.5 / 255)
     lut = (np.arange(256) / 255.0) ** 2.2  # through a response
-    assert photo_level(dim, frames, lut) == pytest.approx(lut[int(round(ld * 255))])
+    assert photo_level(hd, lut) == pytest.approx(lut[int(round(ld * 255))])
 
 
 def test_dim_capture_trains_scaled_and_reports_in_its_units(bright_dim, tmp_path):
@@ -112,7 +114,7 @@ def test_dim_capture_trains_scaled_and_reports_in_its_units(bright_dim, tmp_path
     trainer, m = train_scene(dim, load_config("cpu-quick", TINY), tmp_path / "run", "cpu")
     g = trainer.photo_gain
     frames = list(range(len(dim.frames)))
-    assert g == pytest.approx(level_gain(photo_level(dim, frames, None)))
+    assert g == pytest.approx(level_gain(photo_level(photo_histogram(dim, frames), None)))
     assert g > 1.0 and trainer.level_note and "brighter" in trainer.level_note
     run = json.loads((tmp_path / "run" / "run.json").read_text())
     assert run["photo_gain"] == pytest.approx(g) and "photo_level" in run

@@ -392,12 +392,17 @@ class Scene:
             out.setdefault(f.view, []).append(i)
         return out
 
+    def _first_photo(self) -> None:
+        """``_bits`` and ``_grey`` from the first photo's header (a scene built without the load's checks)."""
+        info = image_info(self.path(self.frames[0].image)) if self.frames else None
+        self._bits = 8 if info is None else int(info[3])
+        self._grey = info is not None and int(info[2]) == 1
+
     @property
     def photo_bits(self) -> int:
         """Bits per channel of the photos (8 or 16; all alike, checked on load)."""
         if self._bits is None:
-            info = image_info(self.path(self.frames[0].image)) if self.frames else None
-            self._bits = 8 if info is None else int(info[3])
+            self._first_photo()
         return self._bits
 
     def photo_full_scale(self) -> tuple[int, str]:
@@ -433,8 +438,7 @@ class Scene:
         three equal channels too, and i_r takes the sensor's sensitivity to the projectors' colour.
         """
         if self._grey is None:
-            info = image_info(self.path(self.frames[0].image)) if self.frames else None
-            self._grey = info is not None and int(info[2]) == 1
+            self._first_photo()
         return self._grey
 
     def image(self, i: int) -> np.ndarray:

@@ -227,13 +227,10 @@ def photo_histogram(scene, frames: list[int], max_frames: int = 8) -> np.ndarray
     return hist
 
 
-def photo_level(scene, frames: list[int], lut: np.ndarray | None, max_frames: int = 8,
-                hist: np.ndarray | None = None) -> float:
+def photo_level(hist: np.ndarray, lut: np.ndarray | None) -> float:
     """The 99.9th percentile of the pixels' brightest channel (linear, through ``lut``; None = code
-    / 255) over up to ``max_frames`` of ``frames`` spread evenly (:func:`photo_histogram`, or
-    ``hist``): where the bright laser lines or the lit surface lie, whatever share of the image the
-    object fills."""
-    hist = photo_histogram(scene, frames, max_frames) if hist is None else hist
+    / 255) in :func:`photo_histogram` ``hist``: where the bright laser lines or the lit surface lie,
+    whatever share of the image the object fills."""
     code = int(np.searchsorted(np.cumsum(hist), 0.999 * hist.sum()))
     return float(lut[code]) if lut is not None else code / 255.0
 
@@ -266,6 +263,36 @@ def level_gain(level: float) -> float:
     half = 0.5 * LEVEL_LOW
     target = LEVEL_REF if level <= half else LEVEL_LOW + (LEVEL_REF - LEVEL_LOW) * (LEVEL_LOW - level) / half
     return float(min(target / level, LEVEL_MAX_GAIN))
+
+
+def training_lut(scene, frames: list[int], lut: np.ndarray | None, level: str = "auto",
+                 black: str = "auto") -> tuple[np.ndarray | None, float, float, str | None]:
+    """The decode table the ray bank reads the photos through: the response's ``lut`` (None =
+    linear), with a raw camera's black level taken off (``illum.black``, :func:`black_level`) and
+    a dim capture scaled up (``illum.level``, :func:`level_gain`), both from one
+    :func:`photo_histogram`.
+
+    Returns:
+        (lut [256] float32 or None when nothing changed, gain, black level (linear), the run
+        summary's line or None).
+    """
+    if "auto" not in (level, black):
+        return lut, 1.0, 0.0, None
+    hist = photo_histogram(scene, frames)
+    base = lut if lut is not None else (np.arange(256) / 255.0).astype(np.float32)
+    notes, gain, pedestal = [], 1.0, black_level(hist, lut) if black == "auto" else 0.0
+    if pedestal > 0:
+        base = np.clip((base - pedestal) / (1.0 - pedestal), 0.0, 1.0).astype(np.float32)
+        notes.append(f"black level: auto -> {pedestal:.3g} (linear; most pixels sit on it, none below): subtracted")
+    if level == "auto":
+        lvl = photo_level(hist, base)
+        gain = level_gain(lvl)
+        if gain > 1.0:
+            base = np.minimum(base * gain, 1.0).astype(np.float32)
+            notes.append(f"photo level: auto -> the brightest 0.1 % of pixels at {lvl:.3g} (linear), under "
+                         f"{LEVEL_LOW:g}: trained {gain:.3g}x brighter; i_b, textures and colours are reported in "
+                         "the photos' units")
+    return (base, gain, pedestal, "; ".join(notes)) if notes else (lut, 1.0, 0.0, None)
 
 
 def lut_mean(hist: torch.Tensor, lut: torch.Tensor, n: int) -> torch.Tensor:

@@ -28,8 +28,7 @@ from fastneus.train.progress import ProgressWriter
 from fastneus.train.rig import Rig
 from fastneus.train.rig import load_into as rig_load
 from fastneus.train.rig import state_of as rig_state
-from fastneus.train.rays import (LEVEL_LOW, RayBank, black_level, build_projection, halo_radius, level_gain,
-                                 pattern_images, photo_histogram, photo_level, photo_masks)
+from fastneus.train.rays import RayBank, build_projection, halo_radius, pattern_images, photo_masks, training_lut
 from fastneus.data.response import decode_lut, is_identity, resolve_response
 
 
@@ -195,31 +194,11 @@ class Trainer:
         want_bg = not self.masks_used and cfg.loss.bg_prior != "off" and cfg.loss.bg_weight > 0
         # photos -> linear light through a 256-entry table in the bank: the model, i_r, i_b are linear
         self.response, self.response_note = resolve_response(scene, self.frames, cfg.illum.response)
-        # a dim capture is scaled up for training (illum.level; reported values are divided back)
-        # and a raw camera's black level taken off first (illum.black)
+        # a raw camera's black level taken off and a dim capture scaled up for training (illum.black,
+        # illum.level); reports divide the gain back (photo_illumination)
         lut = None if is_identity(self.response) else decode_lut(self.response)
-        self.photo_gain, self.photo_black, self.level_note = 1.0, 0.0, None
-        hist = photo_histogram(scene, self.frames) if "auto" in (cfg.illum.level, cfg.illum.black) else None
-        notes = []
-        if cfg.illum.black == "auto":
-            self.photo_black = black_level(hist, lut)
-            if self.photo_black > 0:
-                notes.append(f"black level: auto -> {self.photo_black:.3g} (linear; most pixels sit on it, none "
-                             "below): subtracted")
-        base = lut if lut is not None else (np.arange(256) / 255.0).astype(np.float32)
-        if self.photo_black > 0:
-            base = np.clip((base - self.photo_black) / (1.0 - self.photo_black), 0.0, 1.0).astype(np.float32)
-        if cfg.illum.level == "auto":
-            level = photo_level(scene, self.frames, base, hist=hist)
-            self.photo_gain = level_gain(level)
-            if self.photo_gain > 1.0:
-                base = np.minimum(base * self.photo_gain, 1.0).astype(np.float32)
-                notes.append(f"photo level: auto -> the brightest 0.1 % of pixels at {level:.3g} (linear), under "
-                             f"{LEVEL_LOW:g}: trained {self.photo_gain:.3g}x brighter; i_b, textures and colours "
-                             "are reported in the photos' units")
-        if notes:
-            lut = base
-            self.level_note = "; ".join(notes)
+        lut, self.photo_gain, self.photo_black, self.level_note = training_lut(scene, self.frames, lut,
+                                                                             cfg.illum.level, cfg.illum.black)
         self.photos_note = grey_photos_note(scene, self.frames)  # None for colour photos
         # multi-shot viewpoints (e.g. Gray code) share one ray per pixel across their shots (fastneus.train.multishot)
         self.bank = make_bank(scene, self.frames, self.device, cfg, load_masks=self.masks_used,
