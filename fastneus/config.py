@@ -75,6 +75,9 @@ class RunSection:
     save_every: int = knob(1000, "checkpoint period in steps (the last step always saves)", lo=1)
     cuda_graph: str = knob("auto", "replay the step after marching as a captured CUDA graph where nothing in it "
                            "changes but the inputs (auto/on: on CUDA; off: always eager)", choices=("auto", "on", "off"))
+    matmul: str = knob("auto", "float32 matrix products of the training step (the small networks): tf32 (tensor "
+                       "cores, 10-bit mantissa, as tiny-cuda-nn's half-precision networks) | fp32 | auto (tf32 on "
+                       "CUDA GPUs that have it, compute capability >= 8; fp32 elsewhere)", choices=("auto", "tf32", "fp32"))
     validate_every: float = knob(60.0, "seconds of training between validation renders of one held frame "
                                  "(photo | render | depth) into RUN/validation/; 0 = off (the last step "
                                  "always writes one)", lo=0.0)

@@ -307,6 +307,8 @@ def _train_and_finish(trainer, scene, cfg: Config, out: Path, device: str, conso
     """train_scene's part after the run folder is ready: run.json, training, then finish_run."""
     if console is not None:
         console.print(trainer.threads_note)
+        if trainer.device.type == "cuda":
+            console.print(trainer.matmul_note())
         console.print(trainer.masks_note)
         console.print(trainer.hull_note)
         console.print(trainer.bg_note)
@@ -320,7 +322,8 @@ def _train_and_finish(trainer, scene, cfg: Config, out: Path, device: str, conso
         length = f"time budget {cfg.run.time_budget:g} s" if cfg.run.time_budget > 0 else f"{cfg.run.steps} steps"
         console.print(f"run length: {length}; every schedule is a fraction of it")
     atomic_write_json(out / "run.json", {"scene": str(scene.root), "device": str(device), "preset": cfg.run.preset,
-                                         "threads": trainer.threads, "masks": trainer.masks_note,
+                                         "threads": trainer.threads, "matmul": trainer.matmul,
+                                         "masks": trainer.masks_note,
                                          "background_prior": trainer.bg_note, "response": trainer.response_note,
                                          **({"photos": trainer.photos_note} if trainer.photos_note else {}),
                                          "photo_gain": trainer.photo_gain,

@@ -24,6 +24,7 @@ from fastneus.train.adam import Adam
 from fastneus.train import losses
 from fastneus.train.guard import finite_flag, finite_step
 from fastneus.train.multishot import make_bank
+from fastneus.train.precision import matmul_precision, resolve_matmul
 from fastneus.train.progress import ProgressWriter
 from fastneus.train.rig import Rig
 from fastneus.train.rig import load_into as rig_load
@@ -183,6 +184,8 @@ class Trainer:
         self.device = torch.device(device)
         self.out.mkdir(parents=True, exist_ok=True)
         self.threads, self.threads_note = _configure_threads(cfg.run.threads)
+        # the small networks' float32 GEMMs on tensor cores (TF32) where the GPU has them (precision.py)
+        self.matmul = resolve_matmul(cfg.run.matmul, self.device)
         torch.manual_seed(cfg.run.seed)
         np.random.seed(cfg.run.seed)
         n = len(scene.frames)
@@ -669,6 +672,22 @@ class Trainer:
 
     # ------------------------------------------------------------------ one step
     def train_step(self) -> dict | None:
+        """One optimisation step (:meth:`_train_step`) under the run's matmul precision (``run.matmul``).
+
+        Returns scalars (as tensors) for logging, or None if skipped.
+        """
+        if self.device.type != "cuda":
+            return self._train_step()
+        with matmul_precision(self.matmul):
+            return self._train_step()
+
+    def matmul_note(self) -> str:
+        """The printed line of ``run.matmul``'s decision (CUDA runs)."""
+        if self.matmul == "tf32":
+            return "matmul: tf32 (the small networks' products on tensor cores; run.matmul=fp32 for full float32)"
+        return f"matmul: fp32{' (this GPU has no TF32)' if self.cfg.run.matmul == 'auto' else ''}"
+
+    def _train_step(self) -> dict | None:
         """One optimisation step. Returns scalars (as tensors) for logging, or None if skipped.
 
         The host part (schedules, occupancy, rays, marching: the step's one host sync) runs here;
@@ -1007,7 +1026,8 @@ class Trainer:
 
                 for sigma in AUTO_SIGMAS:
                     self.blurred_store(sigma, keep=True)
-            self.warm_up()
+            with matmul_precision(self.matmul):  # the step's own GEMM kernels load before the clock
+                self.warm_up()
             torch.cuda.synchronize(self.device)
             seconds += time.perf_counter() - t
         return seconds
