@@ -358,6 +358,32 @@ def unprofiled_step_ms(tr, steps: int) -> float:
     return 1000.0 * (time.perf_counter() - t0) / steps
 
 
+def host_profile(tr, steps: int, top: int) -> dict:
+    """cProfile of ``steps`` steps as a run takes them (no sync but the loop's own): where the
+    host's time per step goes when the device waits for it. Functions by their own time."""
+    import cProfile
+    import pstats
+
+    sync = torch.cuda.synchronize if str(tr.device).startswith("cuda") else (lambda: None)
+    sync()
+    pr = cProfile.Profile()
+    t0 = time.perf_counter()
+    pr.enable()
+    for _ in range(steps):
+        tr.train_step()
+    pr.disable()
+    sync()
+    wall = 1000.0 * (time.perf_counter() - t0) / steps
+    st = pstats.Stats(pr)
+    rows = []
+    for (file, line, name), (cc, nc, tt, ct, _) in st.stats.items():
+        rows.append({"function": f"{Path(file).name}:{line}({name})", "calls_per_step": nc / steps,
+                     "own_ms_per_step": 1000.0 * tt / steps, "cum_ms_per_step": 1000.0 * ct / steps})
+    own = sorted(rows, key=lambda r: -r["own_ms_per_step"])[:top]
+    cum = sorted(rows, key=lambda r: -r["cum_ms_per_step"])[:top]
+    return {"steps": steps, "wall_ms_per_step_profiled": wall, "by_own_time": own, "by_cumulative_time": cum}
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("scene")
@@ -375,6 +401,8 @@ def main() -> None:
     ap.add_argument("--gemm-ops", type=int, default=0, metavar="K",
                     help="CUDA: also profile K eager steps with shapes and list which op launched each matrix-product "
                          "kernel (align1 = an operand's rows not a multiple of 4 floats)")
+    ap.add_argument("--host-profile", type=int, default=0, metavar="K",
+                    help="also run K steps under cProfile and list the host functions taking the most time")
     ap.add_argument("overrides", nargs="*", help="key=value config overrides")
     args = ap.parse_intermixed_args()  # key=value overrides may follow the options
 
@@ -399,6 +427,8 @@ def main() -> None:
         res["timeline"] = timeline(tr, args.timeline, args.top, args.trace)
     if args.gemm_ops > 0 and args.device.startswith("cuda"):
         res["gemm_ops"] = gemm_ops(tr, args.gemm_ops)
+    if args.host_profile > 0:
+        res["host_profile"] = host_profile(tr, args.host_profile, max(args.top, 25))
     cmd = command_line("step_profile.py")
     head = (f"{provenance_line(args.device, cmd)} Medians per step ({preset} preset, {tr.n_rays} rays per step)."
             "\n\n")
@@ -424,6 +454,16 @@ def main() -> None:
                    "launched only after the device had gone idle):\n\n")
             md += md_table([{k: (round(v, 3) if isinstance(v, float) else v) for k, v in r.items()}
                             for r in tl["gaps_by_scope"]], ["scope", "count", "ms", "late_ms"])
+    if res.get("host_profile"):
+        hp = res["host_profile"]
+        md += (f"\n\nThe host under cProfile, {hp['steps']} steps ({hp['wall_ms_per_step_profiled']:.2f} ms per step "
+               "profiled); functions by their own time per step:\n\n")
+        md += md_table([{k: (round(v, 4) if isinstance(v, float) else v) for k, v in r.items()}
+                        for r in hp["by_own_time"]], ["function", "calls_per_step", "own_ms_per_step", "cum_ms_per_step"])
+        md += "\n\nBy cumulative time per step:\n\n"
+        md += md_table([{k: (round(v, 4) if isinstance(v, float) else v) for k, v in r.items()}
+                        for r in hp["by_cumulative_time"]],
+                       ["function", "calls_per_step", "own_ms_per_step", "cum_ms_per_step"])
     if res.get("gemm_ops"):
         md += ("\n\nMatrix-product kernels by the op and input shapes that launched them (eager steps, ms per "
                "step):\n\n")
