@@ -302,7 +302,7 @@ def test_graphs_released_at_the_end_of_training(monkeypatch):
     monkeypatch.setattr(torch.cuda, "empty_cache", lambda: calls.append("empty"))
     g.release()
     assert not g.cache and calls == ["sync", "empty"]
-    assert g.summary() == {"graphs": 0, "captured": 2, "replayed": 10, "eager": 3, "evicted": 0, "unsynced": 0,
+    assert g.summary() == {"graphs": 0, "captured": 2, "replayed": 10, "eager": 3, "eager_reasons": {}, "evicted": 0, "unsynced": 0,
                            "captures": g.captures}
     g.release()  # nothing cached: nothing to hand back
     assert calls == ["sync", "empty"]
@@ -466,3 +466,27 @@ def test_train_step_wires_a_capped_step(small_scene, tmp_path):
     g.plan, calls[:] = False, []
     tr.train_step()
     assert calls[0] == "inputs" and calls[1][0] == "step" and calls[1][1] > 0 and tr.step == 2
+
+
+def test_eager_steps_are_counted_by_reason():
+    """run.json's cuda_graphs.eager_reasons says why steps ran eagerly (what to capture next)."""
+    from types import SimpleNamespace
+
+    from fastneus.train.graphstep import StepGraphs
+    from fastneus.train.rays import RayBank
+
+    g = StepGraphs.__new__(StepGraphs)  # the bookkeeping only (no CUDA stream)
+    g.enabled, g.eager, g.eager_reasons = True, 0, {}
+    cfg = load_config("fewview")
+    opt = SimpleNamespace(uniform_steps=lambda: True)
+    field = SimpleNamespace(active_levels=16, hashgrid=SimpleNamespace(levels=16), sdf_grad="analytic")
+    tr = SimpleNamespace(cfg=cfg, rig=SimpleNamespace(active=False), bank=RayBank.__new__(RayBank), prior=None,
+                         opt=opt, field=field, photo_priors=lambda p: (True, False))
+    start = cfg.loss.bg_start_frac
+    assert not g.eligible(tr, start * 1.5)  # inside the background prior's ramp
+    assert g.eligible(tr, start * 2.5)  # after it
+    tr.prior = object()
+    assert not g.eligible(tr, 0.9)
+    assert g.eager == 2 and g.eager_reasons == {"background prior ramp": 1, "surface prior": 1}
+    g.enabled = False
+    assert g.ineligible(tr, 0.9) == "capture failed"

@@ -155,6 +155,7 @@ class StepGraphs:
         self.enabled = True
         self.console = console
         self.captured = self.replayed = self.eager = self.evicted = 0
+        self.eager_reasons: dict[str, int] = {}  # eager steps by why (run.json: cuda_graphs.eager_reasons)
         self.captures: list[dict] = []  # each capture's step, key sizes and host seconds (run.json)
         self._inputs: dict = {}  # batch layout -> (batch, xr) fixed buffers (inputs)
         trainer.field.enable_device_schedule()
@@ -162,19 +163,38 @@ class StepGraphs:
         # the mask loss's weight: filled per step while loss.mask_start changes it
         trainer.mask_w_dev = torch.full((), trainer.mask_weight_at(0.0), device=self.device)
 
+    def ineligible(self, tr, p: float) -> str | None:
+        """Why this step's compute part cannot replay a graph (None: it can): a value in it
+        changes from step to step on the host, or a part of it is not captured."""
+        c = tr.cfg
+        if not self.enabled:
+            return "capture failed"
+        if tr.rig.active:
+            return "rig corrections"
+        if not isinstance(tr.bank, RayBank):
+            return "multi-shot bank"
+        if tr.prior is not None and p < c.init.prior_frac:
+            return "surface prior"
+        if tr.photo_priors(p)[0] and losses.background_ramp(p, c.loss.bg_start_frac) < 1.0:
+            return "background prior ramp"
+        # the curvature taps' and finite differences' step follows the finest active level
+        if (c.loss.curvature_weight > 0 or tr.field.sdf_grad == "fd") and tr.field.active_levels < tr.field.hashgrid.levels:
+            return "coarse-to-fine taps"
+        if not tr.opt.uniform_steps():
+            return "optimizer steps differ"
+        return None
+
     def eligible(self, tr, p: float) -> bool:
         """Whether this step's compute part is the same graph as any other step's with its key."""
-        c = tr.cfg
-        ok = (self.enabled and not tr.rig.active and isinstance(tr.bank, RayBank)
-              and not (tr.prior is not None and p < c.init.prior_frac)
-              and not (tr.photo_priors(p)[0] and losses.background_ramp(p, c.loss.bg_start_frac) < 1.0)
-              # the curvature taps' and finite differences' step follows the finest active level
-              and not ((c.loss.curvature_weight > 0 or tr.field.sdf_grad == "fd")
-                       and tr.field.active_levels < tr.field.hashgrid.levels)
-              and tr.opt.uniform_steps())
-        if not ok:
-            self.eager += 1
-        return ok
+        why = self.ineligible(tr, p)
+        if why is not None:
+            self._eager_step(why)
+        return why is None
+
+    def _eager_step(self, why: str) -> None:
+        self.eager += 1
+        reasons = self.__dict__.setdefault("eager_reasons", {})
+        reasons[why] = reasons.get(why, 0) + 1
 
     def _key(self, tr, batch: dict, capacity: int, p: float) -> tuple:
         return (batch["origins"].shape[0], capacity, *tr.photo_priors(p), tuple(sorted(batch)))
@@ -261,7 +281,7 @@ class StepGraphs:
             # through ~8 buckets in as many steps, and each was captured (30-50 ms of host time)
             # and never replayed: ~0.3 s of a 3-s budget (H100, perf note 21)
             self._pending = key
-            self.eager += 1
+            self._eager_step("new key (rays, capacity)")
             return tr.compute(batch, xr, smp, p)
         if key == self._pending:
             self._pending = None
@@ -385,4 +405,4 @@ class StepGraphs:
 
     def summary(self) -> dict:
         return {"graphs": len(self.cache), "captured": self.captured, "replayed": self.replayed, "eager": self.eager,
-                "evicted": self.evicted, "unsynced": self.unsynced, "captures": self.captures[:64]}
+                "eager_reasons": dict(getattr(self, "eager_reasons", {})), "evicted": self.evicted, "unsynced": self.unsynced, "captures": self.captures[:64]}
