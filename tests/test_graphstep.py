@@ -217,7 +217,7 @@ def test_shared_inputs_are_fixed_per_layout_and_not_copied_again():
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="CUDA graphs need a CUDA device")
 @pytest.mark.parametrize("extra", [[], ["hull=bound"], ["mask_start=on", "mask_weight_start=0.8", "mask_start_frac=0.3"],
-                                   ["mask_loss=mixed"], "train-step path"])
+                                   ["mask_loss=mixed"], "train-step path", ["masks=off", "bg_prior=on"]])
 def test_cuda_replayed_graph_matches_the_eager_step(tmp_path, extra):
     """Graph steps (first: eager on the side stream + capture; then replays) against eager
     steps on the same inputs: the same loss and parameters after every step. The scene is
@@ -234,7 +234,11 @@ def test_cuda_replayed_graph_matches_the_eager_step(tmp_path, extra):
     # coarse-to-fine still opening levels (the kernels read the count at replay), then over; the
     # first steps are in the NeuS cos-anneal ramp (its ratio read from the device, changing per
     # step): one graph replays through both
-    for i, p in enumerate([0.02, 0.04, 0.06, 0.08] + [0.5] * 4):
+    ramp = isinstance(extra, list) and "masks=off" in extra  # through the background prior's ramp-in
+    if ramp:
+        assert a.bg_used and a.photo_priors(0.25)[0]
+    for i, p in enumerate([0.22, 0.25, 0.28, 0.31, 0.34, 0.37, 0.5, 0.5] if ramp else
+                          [0.02, 0.04, 0.06, 0.08] + [0.5] * 4):
         batch, xr, smp = _inputs(b, p)
         a.field.set_progress(p)
         a._set_lr(p)
@@ -262,6 +266,9 @@ def test_cuda_replayed_graph_matches_the_eager_step(tmp_path, extra):
         _close(a, b, f"step {i}")
         assert p == 0.5 or (float(a.cos_dev) == pytest.approx(a.cos_anneal(p)) and a.cos_anneal(p) < 1.0)
         assert float(a.mask_w_dev) == pytest.approx(a.mask_weight_at(p))
+        if ramp:
+            assert float(a.bg_w_dev) == pytest.approx(a.background_weight_at(p))
+            continue
         assert (a.field.active_levels < a.field.hashgrid.levels) == (p < 0.1)
         assert int(a.field._levels_t[0]) == a.field.active_levels
     assert graphs.captured >= 1 and graphs.replayed >= 4, graphs.summary()
@@ -483,10 +490,11 @@ def test_eager_steps_are_counted_by_reason():
     tr = SimpleNamespace(cfg=cfg, rig=SimpleNamespace(active=False), bank=RayBank.__new__(RayBank), prior=None,
                          opt=opt, field=field, photo_priors=lambda p: (True, False))
     start = cfg.loss.bg_start_frac
-    assert not g.eligible(tr, start * 1.5)  # inside the background prior's ramp
-    assert g.eligible(tr, start * 2.5)  # after it
+    assert g.eligible(tr, start * 1.5)  # inside the background prior's ramp: its weight is on the device
     tr.prior = object()
     assert not g.eligible(tr, 0.9)
-    assert g.eager == 2 and g.eager_reasons == {"background prior ramp": 1, "surface prior": 1}
+    tr.prior, tr.rig.active = None, True
+    assert not g.eligible(tr, 0.9)
+    assert g.eager == 2 and g.eager_reasons == {"surface prior": 1, "rig corrections": 1}
     g.enabled = False
     assert g.ineligible(tr, 0.9) == "capture failed"

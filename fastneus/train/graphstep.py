@@ -13,9 +13,9 @@ and replayed as one graph launch, given that
 - the values that change from step to step are on the device: the learning rates and bias
   corrections (``Adam.prepare_device_step``), the sharpness floor and the number of active hash
   levels (``SDFField.enable_device_schedule``), the NeuS cos-anneal ratio (``Trainer.cos_dev``), the
-  mask loss's weight (``Trainer.mask_w_dev``, ``loss.mask_weight_start``);
-- nothing else changes: steps in the background prior's ramp-in,
-  with the fading surface prior, pose / blur / water corrections, or a step count that differs
+  mask loss's weight (``Trainer.mask_w_dev``, ``loss.mask_weight_start``), the background prior's
+  ramped-in weight (``Trainer.bg_w_dev``);
+- nothing else changes: steps with the fading surface prior, pose / blur / water corrections, or a step count that differs
   inside a parameter group run eagerly (:meth:`StepGraphs.eligible`).
 
 One graph per (ray count, sample capacity, loss terms). A key is captured when two steps in a
@@ -162,6 +162,8 @@ class StepGraphs:
         trainer.cos_dev = torch.ones((1,), device=self.device)  # the NeuS cos-anneal ratio, filled per step
         # the mask loss's weight: filled per step while loss.mask_start changes it
         trainer.mask_w_dev = torch.full((), trainer.mask_weight_at(0.0), device=self.device)
+        # the background prior's weight, ramped in per step (losses.background_ramp)
+        trainer.bg_w_dev = torch.full((), trainer.bg_weight, device=self.device)
 
     def ineligible(self, tr, p: float) -> str | None:
         """Why this step's compute part cannot replay a graph (None: it can): a value in it
@@ -175,8 +177,6 @@ class StepGraphs:
             return "multi-shot bank"
         if tr.prior is not None and p < c.init.prior_frac:
             return "surface prior"
-        if tr.photo_priors(p)[0] and losses.background_ramp(p, c.loss.bg_start_frac) < 1.0:
-            return "background prior ramp"
         # the curvature taps' and finite differences' step follows the finest active level
         if (c.loss.curvature_weight > 0 or tr.field.sdf_grad == "fd") and tr.field.active_levels < tr.field.hashgrid.levels:
             return "coarse-to-fine taps"

@@ -332,6 +332,7 @@ class Trainer:
         self.graphs = None
         self.cos_dev: torch.Tensor | None = None  # [1] cos-anneal ratio on the device (with graphs)
         self.mask_w_dev: torch.Tensor | None = None  # [] the mask loss's weight on the device (with graphs)
+        self.bg_w_dev: torch.Tensor | None = None  # [] the background prior's ramped weight on the device (graphs)
         if self.device.type == "cuda" and cfg.run.cuda_graph != "off":
             from fastneus.train.graphstep import StepGraphs
 
@@ -445,6 +446,13 @@ class Trainer:
         self.cos_dev.fill_(self.cos_anneal(p))
         if self.mask_start_used:  # else it holds mask_weight from its creation (no launch per step)
             self.mask_w_dev.fill_(self.mask_weight_at(p))
+        if self.bg_w_dev is not None and self.bg_used and p < 2.0 * self.cfg.loss.bg_start_frac:
+            self.bg_w_dev.fill_(self.background_weight_at(p))  # after the ramp it keeps its full value
+
+    def background_weight_at(self, p: float) -> float:
+        """The background prior's weight at progress ``p``: ``bg_weight`` times its ramp-in
+        (:func:`losses.background_ramp`; 0 before ``bg_start_frac``, where the term is off)."""
+        return max(0.0, losses.background_ramp(p, self.cfg.loss.bg_start_frac)) * self.bg_weight
 
     def mask_weight_at(self, p: float) -> float:
         """The mask loss's weight at progress ``p``: ``mask_weight_start`` falling linearly to
@@ -837,11 +845,11 @@ class Trainer:
                 m, has = self._pixel_min_sdf(out)
                 terms |= losses.mask_silhouette(m, has, opacity, batch["mask"], mw, self.field.inv_s(), mask_form)
         elif bg_on:
-            ramp = losses.background_ramp(p, c.loss.bg_start_frac)
+            bw = self.bg_w_dev if capturing else self.background_weight_at(p)  # a replay reads the ramp
             is_bg = batch["bg"]
             if lit is not None:  # dark room: a black pixel is empty space only where a surface would be lit
                 is_bg = is_bg * (lit / c.loss.bg_lit_ref).clamp(max=1.0)
-            terms |= losses.background_free_space(opacity, is_bg, ramp * self.bg_weight)
+            terms |= losses.background_free_space(opacity, is_bg, bw)
         if fg_on:
             # a pixel (any of its shots, any channel) clearly above the backdrop: the object is there
             if "fg" in batch:  # flagged at load (the bank: threshold and the lens's halo left out)
