@@ -12,7 +12,7 @@ import json
 import pytest
 import torch
 
-from conftest import SMALL_RUN
+from conftest import SMALL_RUN, scene_on
 from fastneus.config import load_config
 from fastneus.train.precision import matmul_precision, resolve_matmul
 
@@ -53,7 +53,7 @@ def test_run_json_records_the_decision(small_scene, tmp_path):
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
-def test_tf32_step_matches_the_fp32_step_on_cuda(small_scene, tmp_path):
+def test_tf32_step_matches_the_fp32_step_on_cuda(tmp_path):
     """Same parameters, same rays and samples: the loss agrees to TF32's rounding, and every
     parameter's gradient points the same way (cosine >= 0.999) at a similar size."""
     from fastneus.data import Scene
@@ -61,7 +61,7 @@ def test_tf32_step_matches_the_fp32_step_on_cuda(small_scene, tmp_path):
     from fastneus.train.trainer import Trainer
 
     cfg = load_config("fewview", SMALL_RUN + ["init_geometry=sphere", "cuda_graph=off"])
-    sc = Scene.load(small_scene)
+    sc = Scene.load(scene_on(None, tmp_path, "cuda"))  # rendered on the GPU (no CPU compiler needed)
     tr = Trainer(sc, cfg, tmp_path / "a", "cuda")
     gen = torch.Generator(device="cuda")
     gen.manual_seed(3)
@@ -89,12 +89,12 @@ def test_tf32_step_matches_the_fp32_step_on_cuda(small_scene, tmp_path):
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
-def test_a_cuda_train_step_leaves_the_flag_as_it_was(small_scene, tmp_path):
+def test_a_cuda_train_step_leaves_the_flag_as_it_was(tmp_path):
     from fastneus.data import Scene
     from fastneus.train.trainer import Trainer
 
     cfg = load_config("fewview", SMALL_RUN + ["init_geometry=sphere"])
-    tr = Trainer(Scene.load(small_scene), cfg, tmp_path / "a", "cuda")
+    tr = Trainer(Scene.load(scene_on(None, tmp_path, "cuda")), cfg, tmp_path / "a", "cuda")
     assert tr.matmul == ("tf32" if torch.cuda.get_device_capability()[0] >= 8 else "fp32")
     before = _flag()
     for _ in range(3):
