@@ -264,11 +264,12 @@ def test_cuda_replayed_graph_matches_the_eager_step(tmp_path, extra):
             ra = graphs.step(a, batch, xr, smp, p)
         torch.testing.assert_close(ra["loss"], rb["loss"], rtol=1e-4, atol=1e-6)
         _close(a, b, f"step {i}")
-        assert p == 0.5 or (float(a.cos_dev) == pytest.approx(a.cos_anneal(p)) and a.cos_anneal(p) < 1.0)
         assert float(a.mask_w_dev) == pytest.approx(a.mask_weight_at(p))
-        if ramp:
+        if ramp:  # the ramp's steps, past the cos-anneal and coarse-to-fine ramps
             assert float(a.bg_w_dev) == pytest.approx(a.background_weight_at(p))
+            assert p == 0.5 or 0.0 < a.background_weight_at(p) < a.bg_weight
             continue
+        assert p == 0.5 or (float(a.cos_dev) == pytest.approx(a.cos_anneal(p)) and a.cos_anneal(p) < 1.0)
         assert (a.field.active_levels < a.field.hashgrid.levels) == (p < 0.1)
         assert int(a.field._levels_t[0]) == a.field.active_levels
     assert graphs.captured >= 1 and graphs.replayed >= 4, graphs.summary()

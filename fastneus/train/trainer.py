@@ -446,8 +446,8 @@ class Trainer:
         self.cos_dev.fill_(self.cos_anneal(p))
         if self.mask_start_used:  # else it holds mask_weight from its creation (no launch per step)
             self.mask_w_dev.fill_(self.mask_weight_at(p))
-        if self.bg_w_dev is not None and self.bg_used and p < 2.0 * self.cfg.loss.bg_start_frac:
-            self.bg_w_dev.fill_(self.background_weight_at(p))  # after the ramp it keeps its full value
+        if self.bg_w_dev is not None and self.bg_used:
+            self.bg_w_dev.fill_(self.background_weight_at(p))
 
     def background_weight_at(self, p: float) -> float:
         """The background prior's weight at progress ``p``: ``bg_weight`` times its ramp-in
