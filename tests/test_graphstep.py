@@ -499,3 +499,32 @@ def test_eager_steps_are_counted_by_reason():
     assert g.eager == 2 and g.eager_reasons == {"surface prior": 1, "rig corrections": 1}
     g.enabled = False
     assert g.ineligible(tr, 0.9) == "capture failed"
+
+
+def test_device_scalars_give_the_eager_loss_through_the_background_ramp(small_scene, tmp_path, monkeypatch):
+    """No masks: the loss a captured step records (its schedule values read from the device
+    scalars ``fill_step_scalars`` wrote) equals the eager loss at every progress through the
+    background prior's ramp-in and after it (a scalar last filled inside the ramp must not keep
+    that value). On the CPU, by letting ``step_loss`` take its capturing branch."""
+    a, b = _pair(small_scene, tmp_path, "cpu", ["masks=off", "bg_prior=on"])
+    assert a.bg_used and not a.masks_used
+    a.cos_dev = torch.ones((1,))
+    a.mask_w_dev = torch.full((), a.mask_weight_at(0.0))
+    a.bg_w_dev = torch.full((), a.bg_weight)
+    start = a.cfg.loss.bg_start_frac
+    seen = []
+    for p in (start * 1.1, start * 1.5, start * 1.9, start * 2.5, 0.9):
+        batch, xr, smp = _inputs(b, p)
+        a.field.set_progress(p)
+        a._set_lr(p)
+        a.fill_step_scalars(p)
+        assert float(a.bg_w_dev) == pytest.approx(a.background_weight_at(p))
+        seen.append(float(a.bg_w_dev))
+        with torch.no_grad():
+            lb, tb = b.step_loss(batch, xr, smp, p)
+            monkeypatch.setattr(torch.cuda, "is_current_stream_capturing", lambda: True)
+            la, ta = a.step_loss(batch, xr, smp, p)
+            monkeypatch.undo()
+        torch.testing.assert_close(ta["background"], tb["background"], rtol=1e-5, atol=1e-8)
+        torch.testing.assert_close(la, lb, rtol=1e-5, atol=1e-7)
+    assert seen[0] < seen[1] < seen[2] < seen[3] == pytest.approx(a.bg_weight) == seen[4]
