@@ -81,7 +81,7 @@ def finish_run(trainer, console=None, eval_frames: list[int] | None = None, mesh
     trainer's checkpoint right after mesh.ply (also if meshing fails).
     """
     from fastneus import timing
-    from fastneus.export.mesh import extract_mesh_arrays, save_mesh, shade_mesh
+    from fastneus.export.mesh import save_mesh
 
     clock = clock or getattr(trainer, "clock", None) or timing.take_clock()
     say = console.print if console is not None else (lambda *a, **k: None)
@@ -90,11 +90,7 @@ def finish_run(trainer, console=None, eval_frames: list[int] | None = None, mesh
         with clock.phase("mesh"):
             t = time.perf_counter()
             res = mesh_resolution or cfg.export.mesh_resolution
-            mesh = extract_mesh_arrays(trainer.field, scene, res, trainer.device, bound=cfg.rays.bound,
-                                       allowed=trainer.seen)
-            # normals and learned colours, encoded like the photos
-            mesh = shade_mesh(trainer.field, scene, mesh, trainer.device, response=getattr(trainer, "response", None),
-                              scale=1.0 / getattr(trainer, "photo_gain", 1.0))
+            mesh = run_mesh(trainer, res)
             save_mesh(mesh, run / "mesh.ply")
             at = clock.mark("mesh_ready")
             dt = time.perf_counter() - t
@@ -406,21 +402,38 @@ def reconstruct(scene, config=None, out: str | os.PathLike = "runs/fastneus", de
     return train_scene(scene, cfg, Path(out), device, console=console, resume=resume, overwrite=overwrite)
 
 
+def run_mesh(trainer, resolution: int | None = None, scene=None):
+    """The trained surface (marching cubes, world units) with vertex normals and the learned
+    pattern-free colours in the photos' units and encoding: the one place mesh.ply, ``fastneus
+    export mesh`` and :func:`extract_mesh` take it from.
+
+    Args:
+        trainer: a trained :class:`fastneus.train.trainer.Trainer`.
+        resolution: grid resolution (default: the run's ``export.mesh_resolution``).
+        scene: the scene to mesh in (default: the trainer's).
+    Returns:
+        :class:`fastneus.export.mesh.MeshArrays` with ``normals`` and ``colors``.
+    """
+    from fastneus.export.mesh import extract_mesh_arrays, shade_mesh
+
+    scene = scene if scene is not None else trainer.scene
+    res = resolution or trainer.cfg.export.mesh_resolution
+    mesh = extract_mesh_arrays(trainer.field, scene, res, trainer.device, bound=trainer.cfg.rays.bound,
+                               allowed=trainer.seen)
+    # colours encoded like the photos, and divided back when a dim capture was trained brighter (illum.level)
+    return shade_mesh(trainer.field, scene, mesh, trainer.device, response=getattr(trainer, "response", None),
+                      scale=1.0 / getattr(trainer, "photo_gain", 1.0))
+
+
 def extract_mesh(trainer, resolution: int | None = None):
     """The trained surface as a ``trimesh.Trimesh`` in world units (marching cubes), with vertex
-    normals and the learned pattern-free vertex colours.
+    normals and the learned pattern-free vertex colours (:func:`run_mesh`).
 
     Args:
         trainer: a trained :class:`fastneus.train.trainer.Trainer` (e.g. from :func:`reconstruct`).
         resolution: grid resolution (default: the run's ``export.mesh_resolution``).
     """
-    from fastneus.export.mesh import extract_mesh_arrays, shade_mesh
-
-    res = resolution or trainer.cfg.export.mesh_resolution
-    mesh = extract_mesh_arrays(trainer.field, trainer.scene, res, trainer.device, bound=trainer.cfg.rays.bound,
-                               allowed=trainer.seen)
-    return shade_mesh(trainer.field, trainer.scene, mesh, trainer.device, response=getattr(trainer, "response", None),
-                      scale=1.0 / getattr(trainer, "photo_gain", 1.0)).to_trimesh()
+    return run_mesh(trainer, resolution).to_trimesh()
 
 
 def evaluate(run: str | os.PathLike, device: str | None = None, scene: str | None = None,

@@ -303,7 +303,7 @@ def test_graphs_released_at_the_end_of_training(monkeypatch):
 
     g = object.__new__(graphstep.StepGraphs)
     g.cache, g.device = collections.OrderedDict((k, object()) for k in "ab"), "cpu"
-    g.captured, g.replayed, g.eager, g.evicted = 2, 10, 3, 0
+    g.captured, g.replayed, g.eager, g.evicted, g.eager_reasons = 2, 10, 3, 0, {}
     g.captures = [{"step": 1, "rays": 64, "capacity": 1024, "seconds": 0.05}] * 2
     calls = []
     monkeypatch.setattr(torch.cuda, "synchronize", lambda d=None: calls.append("sync"))
@@ -337,7 +337,7 @@ def test_a_key_is_captured_only_when_the_next_step_repeats_it():
     from fastneus.train import graphstep
 
     g = object.__new__(graphstep.StepGraphs)  # the bookkeeping only (no CUDA stream)
-    g.cache, g.enabled, g._pending, g.eager = collections.OrderedDict(), True, None, 0
+    g.cache, g.enabled, g._pending, g.eager, g.eager_reasons = collections.OrderedDict(), True, None, 0, {}
     calls = []
 
     class _Eager(_KeyTrainer):

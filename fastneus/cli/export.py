@@ -6,7 +6,7 @@ from pathlib import Path
 from fastneus.cli import add_device_arg, resolve_device
 from fastneus.errors import FastneusError
 from fastneus.io import check_out_dir, confined, json_text
-from fastneus.pipeline import open_run
+from fastneus.pipeline import open_run, run_mesh
 
 RUN_HELP = "run folder of a trained run (holds checkpoint.pt and config.yaml)"
 SCENE_HELP = "scene folder (default: the one the run was trained on, from run.json)"
@@ -25,7 +25,7 @@ def _check_resolution(res: int | None) -> None:
 
 
 def _mesh(args) -> int:
-    from fastneus.export.mesh import MESH_SUFFIXES, extract_mesh_arrays, save_mesh, shade_mesh
+    from fastneus.export.mesh import MESH_SUFFIXES, save_mesh
 
     _check_resolution(args.resolution)
     if args.out is not None:
@@ -37,10 +37,7 @@ def _mesh(args) -> int:
         check_out_dir(Path(args.out).parent)
     device = resolve_device(args.device)
     scene, tr = open_run(args.run, device, args.scene)
-    mesh = extract_mesh_arrays(tr.field, scene, args.resolution or tr.cfg.export.mesh_resolution, tr.device,
-                               bound=tr.cfg.rays.bound, allowed=tr.seen)
-    mesh = shade_mesh(tr.field, scene, mesh, tr.device, response=getattr(tr, "response", None),
-                      scale=1.0 / getattr(tr, "photo_gain", 1.0))
+    mesh = run_mesh(tr, args.resolution, scene)
     out = Path(args.out) if args.out else Path(args.run) / "mesh.ply"
     with confined(out.parent):  # mesh.ply as a link into another folder is refused, not followed
         save_mesh(mesh, out)

@@ -15,8 +15,8 @@ and replayed as one graph launch, given that
   levels (``SDFField.enable_device_schedule``), the NeuS cos-anneal ratio (``Trainer.cos_dev``), the
   mask loss's weight (``Trainer.mask_w_dev``, ``loss.mask_weight_start``), the background prior's
   ramped-in weight (``Trainer.bg_w_dev``);
-- nothing else changes: steps with the fading surface prior, pose / blur / water corrections, or a step count that differs
-  inside a parameter group run eagerly (:meth:`StepGraphs.eligible`).
+- nothing else changes: steps with the fading surface prior, pose / blur / water corrections, or
+  a step count that differs inside a parameter group run eagerly (:meth:`StepGraphs.eligible`).
 
 One graph per (ray count, sample capacity, loss terms). A key is captured when two steps in a
 row have it (a key seen once, as while the ray count settles after the occupancy grid's first
@@ -33,7 +33,6 @@ import time
 
 import torch
 
-from fastneus.train import losses
 from fastneus.train.rays import RayBank
 
 MAX_GRAPHS = 8  # least recently used graphs are dropped past this (each keeps its activations)
@@ -178,7 +177,8 @@ class StepGraphs:
         if tr.prior is not None and p < c.init.prior_frac:
             return "surface prior"
         # the curvature taps' and finite differences' step follows the finest active level
-        if (c.loss.curvature_weight > 0 or tr.field.sdf_grad == "fd") and tr.field.active_levels < tr.field.hashgrid.levels:
+        taps = c.loss.curvature_weight > 0 or tr.field.sdf_grad == "fd"
+        if taps and tr.field.active_levels < tr.field.hashgrid.levels:
             return "coarse-to-fine taps"
         if not tr.opt.uniform_steps():
             return "optimizer steps differ"
@@ -193,8 +193,7 @@ class StepGraphs:
 
     def _eager_step(self, why: str) -> None:
         self.eager += 1
-        reasons = self.__dict__.setdefault("eager_reasons", {})
-        reasons[why] = reasons.get(why, 0) + 1
+        self.eager_reasons[why] = self.eager_reasons.get(why, 0) + 1
 
     def _key(self, tr, batch: dict, capacity: int, p: float) -> tuple:
         return (batch["origins"].shape[0], capacity, *tr.photo_priors(p), tuple(sorted(batch)))
@@ -405,4 +404,5 @@ class StepGraphs:
 
     def summary(self) -> dict:
         return {"graphs": len(self.cache), "captured": self.captured, "replayed": self.replayed, "eager": self.eager,
-                "eager_reasons": dict(getattr(self, "eager_reasons", {})), "evicted": self.evicted, "unsynced": self.unsynced, "captures": self.captures[:64]}
+                "eager_reasons": dict(self.eager_reasons), "evicted": self.evicted, "unsynced": self.unsynced,
+                "captures": self.captures[:64]}
