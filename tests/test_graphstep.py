@@ -8,6 +8,8 @@ loss and parameters as the eager step on the same inputs, step after step.
 """
 from __future__ import annotations
 
+import math
+
 import pytest
 import torch
 
@@ -310,7 +312,7 @@ def test_graphs_released_at_the_end_of_training(monkeypatch):
     monkeypatch.setattr(torch.cuda, "empty_cache", lambda: calls.append("empty"))
     g.release()
     assert not g.cache and calls == ["sync", "empty"]
-    assert g.summary() == {"graphs": 0, "captured": 2, "replayed": 10, "eager": 3, "eager_reasons": {}, "evicted": 0, "unsynced": 0,
+    assert g.summary() == {"graphs": 0, "captured": 2, "replayed": 10, "eager": 3, "eager_reasons": {}, "evicted": 0, "unsynced": 0, "drawn": 0,
                            "captures": g.captures}
     g.release()  # nothing cached: nothing to hand back
     assert calls == ["sync", "empty"]
@@ -432,6 +434,7 @@ def test_train_step_wires_a_capped_step(small_scene, tmp_path):
 
     class _G:
         plan = True
+        replay_draw = False
 
         def eligible(self, t, p):
             return True
@@ -439,8 +442,16 @@ def test_train_step_wires_a_capped_step(small_scene, tmp_path):
         def ray_count(self, n):
             return ray_bucket(n)
 
-        def inputs(self, batch, xr):
-            calls.append("inputs")
+        def drawn(self, t, n, p):
+            calls.append(("drawn", n))
+            return ("drawn key", self.e) if self.replay_draw else None
+
+        @staticmethod
+        def draw_token(t):
+            return ("token",)
+
+        def inputs(self, batch, xr, drawn=None):
+            calls.append(("inputs", drawn[1]))
             return batch, xr
 
         def capped(self, t, batch, xr, p):
@@ -467,13 +478,20 @@ def test_train_step_wires_a_capped_step(small_scene, tmp_path):
     g = tr.graphs = _G()
     tr.update_grid(0.0)
     rec = tr.train_step()
-    assert calls == ["inputs", ("run_capped", "key", True)]
+    n = calls[0][1]
+    assert calls == [("drawn", n), ("inputs", ("token",)), ("run_capped", "key", True)]
     assert rec["samples"] == 1234 and tr.step == 1
     e = g.e
     assert int(e.total) > 0 and int(e.smp["counts"].sum()) == min(int(e.total), e.capacity)
-    g.plan, calls[:] = False, []
+    # a replayed draw graph: no eager draw, no inputs, no march on the host; the replay and the estimate
+    g.replay_draw, calls[:] = True, []
+    e.total.fill_(-7)  # the capped march did not run again
+    rec = tr.train_step()
+    assert calls == [("drawn", calls[0][1]), ("run_capped", "drawn key", True)]
+    assert rec["samples"] == 1234 and int(e.total) == -7 and tr.step == 2
+    g.replay_draw, g.plan, calls[:] = False, False, []
     tr.train_step()
-    assert calls[0] == "inputs" and calls[1][0] == "step" and calls[1][1] > 0 and tr.step == 2
+    assert calls[1][0] == "inputs" and calls[2][0] == "step" and calls[2][1] > 0 and tr.step == 3
 
 
 def test_eager_steps_are_counted_by_reason():
@@ -528,3 +546,105 @@ def test_device_scalars_give_the_eager_loss_through_the_background_ramp(small_sc
         torch.testing.assert_close(ta["background"], tb["background"], rtol=1e-5, atol=1e-8)
         torch.testing.assert_close(la, lb, rtol=1e-5, atol=1e-7)
     assert seen[0] < seen[1] < seen[2] < seen[3] == pytest.approx(a.bg_weight) == seen[4]
+
+
+def test_a_draw_graph_replays_only_the_draw_it_was_recorded_for(small_scene, tmp_path):
+    """StepGraphs.drawn (CPU, the recording stood in for): a capped step replays a draw graph
+    only after an eager draw of its ray count into the graphs' buffers, for an entry with a
+    captured compute graph on those buffers, while nothing the draw reads was replaced; it is
+    recorded once and again after such a replacement; draws off: never."""
+    import collections
+
+    from fastneus.train.graphstep import StepGraphs
+    from fastneus.train.trainer import Trainer
+
+    cfg = load_config("cpu-quick", SMALL_RUN + ["threads=1", "cuda_graph=off"])
+    tr = Trainer(Scene.load(small_scene), cfg, tmp_path / "r", "cpu")
+    tr.update_grid(0.0)
+    g = StepGraphs.__new__(StepGraphs)
+    g.cache, g._inputs, g._drawn, g.captures = collections.OrderedDict(), {}, {}, []
+    recorded = []
+
+    class _Graph:
+        replays = 0
+
+        def replay(self):
+            _Graph.replays += 1
+
+    g._record_draw = lambda t, n, e: recorded.append((n, e)) or _Graph()
+    n, p = 96, 0.5
+    assert g.drawn(tr, n, p) is None  # no eager draw of 96 rays yet
+    b, x = g.inputs(*tr.draw(n, tr.gen), drawn=(n, g.draw_token(tr)))
+    g._last = (40 * n, n)  # the last count read back: 40 samples per ray
+    assert g.drawn(tr, n, p) is None  # no captured compute graph for the key
+    est = g._estimate(n)
+    key = g._key(tr, b, g._capacity(tr, b, est, p), p)
+    e = g.cache[key] = _Entry(b, x, key[1], shared=True)
+    assert g.drawn(tr, n, p) is None and not recorded  # captured? not yet
+    e.graph = object()
+    assert g.drawn(tr, n, p) == (key, e) and recorded == [(n, e)] and _Graph.replays == 1
+    assert g.drawn(tr, n, p) == (key, e) and len(recorded) == 1 and _Graph.replays == 2 and g.drawn_steps == 2
+    assert g.drawn(tr, 2 * n, p) is None  # another ray count: its own eager draw first
+    tr.bank.rgb = tr.bank.rgb.clone()  # the same values in other memory: the graph would read the old
+    assert g.drawn(tr, n, p) is None
+    g.inputs(*tr.draw(n, tr.gen), drawn=(n, g.draw_token(tr)))
+    assert g.drawn(tr, n, p) == (key, e) and len(recorded) == 2  # recorded again for the new tensors
+    tr.grid.stop = torch.zeros_like(tr.grid.bits)  # the march's stop cells appear: a new token
+    assert g.drawn(tr, n, p) is None
+    g.inputs(*tr.draw(n, tr.gen), drawn=(n, g.draw_token(tr)))
+    g._last = (80 * n, n)  # the count doubled: past the entry's capacity, no graph for it
+    assert g.drawn(tr, n, p) is None
+    g._last = (40 * n, n)
+    g.draws_on = False
+    assert g.drawn(tr, n, p) is None and len(recorded) == 2  # off: nothing recorded or replayed
+    assert StepGraphs.same_draw((tr.bank.rgb, 1.0), (tr.bank.rgb, 1.0))
+    assert not StepGraphs.same_draw((tr.bank.rgb, 1.0), (tr.bank.rgb.clone(), 1.0))
+    assert not StepGraphs.same_draw((None, 1.0), (None, 0.5)) and not StepGraphs.same_draw((None,), (tr.bank.rgb,))
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="CUDA graphs need a CUDA device")
+def test_cuda_drawn_graph_matches_the_eager_draw(tmp_path):
+    """A replayed draw graph (the rays, the uniform points and the capped march) writes what the
+    eager draw and march write from the same default-generator state, bit for bit; training
+    steps use it (drawn_steps > 0) and their loss stays finite."""
+    from fastneus.train.trainer import Trainer
+
+    scene = Scene.load(scene_on(None, tmp_path, "cuda"))
+    cfg = load_config("fewview", SMALL_RUN + ["steps=80", "camera_blur=0"])
+    tr = Trainer(scene, cfg, tmp_path / "r", "cuda")
+    g = tr.graphs
+    assert g is not None
+    drawn, seen = g.drawn, []
+
+    def spy(t, n, p):  # the first replayed draw, with the generator state before it and the grid it read
+        state = torch.cuda.get_rng_state(t.device)
+        got = drawn(t, n, p)
+        if got is not None and not seen:
+            e = got[1]
+            stop = None if t.grid.stop is None else t.grid.stop.clone()
+            seen.append((n, state, t.grid.bits.clone(), stop, {k: v.clone() for k, v in e.batch.items()},
+                         e.xr.clone(), [b.clone() for b in e.capped_buffers()], e.capacity))
+        return got
+
+    g.drawn = spy
+    losses = []
+    for _ in range(60):
+        rec = tr.train_step()
+        if rec is not None:
+            losses.append(float(rec["loss"]))
+    assert g.drawn_steps > 0 and seen, g.summary()
+    assert all(math.isfinite(v) for v in losses)
+    n, state, bits, stop, rb, rxr, rsmp, cap = seen[0]
+    torch.cuda.set_rng_state(state, tr.device)
+    batch, xr = tr.draw(n, None)
+    out = tuple(torch.empty_like(t) for t in rsmp)
+    march_samples_capped(bits, tr.grid.resolution, batch["origins"], batch["dirs"], tr.cfg, out, stop=stop)
+    assert set(batch) == set(rb)
+    for k, v in batch.items():
+        assert torch.equal(rb[k], v), k
+    assert torch.equal(rxr, xr)
+    for name, a, b in zip(("offsets", "counts", "total"), rsmp[:3], out[:3]):
+        assert torch.equal(a, b), name
+    live = min(int(out[2]), cap)
+    for name, a, b in zip(("t0", "t1", "ray_index"), rsmp[3:], out[3:]):
+        assert torch.equal(a[:live], b[:live]), name

@@ -18,6 +18,13 @@ and replayed as one graph launch, given that
 - nothing else changes: steps with the fading surface prior, pose / blur / water corrections, or
   a step count that differs inside a parameter group run eagerly (:meth:`StepGraphs.eligible`).
 
+A step whose sample count is not read back (a *capped* step: its capacity planned from the last
+count read back, :meth:`StepGraphs.capped`) also replays the ray draw and the march as a second,
+small graph per key (:meth:`StepGraphs.drawn`: the draw with the default CUDA generator, the
+copies into the fixed inputs, the capped march), so the host launches two graphs and a few fills
+per step. It is recorded on the key's first capped step and retired when what the draw reads is
+replaced (:data:`DRAW_FIELDS`, :meth:`StepGraphs.draw_token`).
+
 One graph per (ray count, sample capacity, loss terms). A key is captured when two steps in a
 row have it (a key seen once, as while the ray count settles after the occupancy grid's first
 update, runs eagerly and is never recorded): that second step runs eagerly on a side stream (it
@@ -33,6 +40,7 @@ import time
 
 import torch
 
+from fastneus.field.renderer import march_samples_capped
 from fastneus.train.rays import RayBank
 
 MAX_GRAPHS = 8  # least recently used graphs are dropped past this (each keeps its activations)
@@ -45,6 +53,9 @@ RAY_SLACK = 0.25
 # skipped. Below the 5 % (+ rounding) that a counted step's new capacity gets, so those graphs serve.
 CAP_MARGIN = 1.04
 MIN_FREE = 0.35  # ... and while less than this share of the GPU's memory is free (_make_room)
+# what a ray draw reads of the bank: a recorded draw graph reads these tensors where it was recorded,
+# so one that is replaced (the halo's weights at 30 % of a run, new background flags) retires it
+DRAW_FIELDS = ("rgb", "lut", "mask", "bg", "bg_soft", "fg", "cdf", "offset", "wh", "kinv", "rot", "origin", "port")
 
 
 def ray_bucket(n: int) -> int:
@@ -92,6 +103,7 @@ class _Entry:
         self.fits = torch.ones(1, dtype=torch.bool, device=dev)
         self.graph: torch.cuda.CUDAGraph | None = None
         self.rec: dict | None = None
+        self.draw: tuple | None = None  # (draw token, graph): the rays drawn and marched into these buffers
 
     def buffers(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """t0, t1, ray_index [C]: where the march writes this step's samples (``march_samples(out=)``)."""
@@ -146,6 +158,8 @@ class StepGraphs:
     _last: tuple | None = None  # (samples, rays) of the last step whose count is known on the host
     _lag: dict | None = None  # the capped steps' count read back (pinned host int, event)
     unsynced = 0  # replays planned without the march's host sync (capped)
+    drawn_steps = 0  # ... of which the draw and the march replayed a graph too (drawn)
+    draws_on = True
 
     def __init__(self, trainer, console=None):
         self.device = trainer.device
@@ -157,6 +171,9 @@ class StepGraphs:
         self.eager_reasons: dict[str, int] = {}  # eager steps by why (run.json: cuda_graphs.eager_reasons)
         self.captures: list[dict] = []  # each capture's step, key sizes and host seconds (run.json)
         self._inputs: dict = {}  # batch layout -> (batch, xr) fixed buffers (inputs)
+        self._drawn: dict = {}  # ray count -> (batch, xr) buffers of its last eager draw, its draw token
+        self.draws_on = True  # recorded draw graphs (off after a failed capture)
+        self.drawn_steps = 0  # steps whose draw and march replayed a graph
         trainer.field.enable_device_schedule()
         trainer.cos_dev = torch.ones((1,), device=self.device)  # the NeuS cos-anneal ratio, filled per step
         # the mask loss's weight: filled per step while loss.mask_start changes it
@@ -215,12 +232,14 @@ class StepGraphs:
         fits = [k[1] for k in keys if k[0] == rest[0] and s <= k[1] <= 1.2 * s and k[2:] == rest[2:]]
         return min(fits) if fits else sample_bucket(int(s * 1.05) + 1)
 
-    def inputs(self, batch: dict, xr: torch.Tensor) -> tuple[dict, torch.Tensor]:
+    def inputs(self, batch: dict, xr: torch.Tensor, drawn: tuple | None = None) -> tuple[dict, torch.Tensor]:
         """This step's ray batch and uniform points copied into fixed buffers, one set per
         batch layout (ray count, keys, shapes) shared by every graph of it, before the march:
         the copies run while the device still works on the last step, not between the count
         read and the replay (10 copies: 0.2 ms of idle device per step on an H200). The step
-        then uses the returned tensors (same values)."""
+        then uses the returned tensors (same values). ``drawn``: (ray count, :meth:`draw_token`)
+        of this draw, remembered so that a later step of that ray count can replay a recorded
+        draw into the same buffers (:meth:`drawn`)."""
         sig = (tuple((k, tuple(v.shape), v.dtype) for k, v in sorted(batch.items())), tuple(xr.shape))
         bufs = self._inputs.get(sig)
         if bufs is None:  # kept for the run: a graph reads them where it was recorded
@@ -228,7 +247,87 @@ class StepGraphs:
         for k, v in batch.items():
             bufs[0][k].copy_(v)
         bufs[1].copy_(xr)
+        if drawn is not None:
+            self._drawn[drawn[0]] = ((dict(bufs[0]), bufs[1]), drawn[1])
         return dict(bufs[0]), bufs[1]
+
+    @staticmethod
+    def draw_token(tr) -> tuple:
+        """What a recorded draw of ``tr``'s rays depends on beyond its ray count: the bank's tensors
+        (:data:`DRAW_FIELDS`, by identity), the rays per pixel and the lens blur they spread over,
+        the rig's pose switch and the occupancy grid's tensors the march reads. A draw graph whose
+        token differs from the trainer's is not replayed (:meth:`same_draw`)."""
+        b = tr.bank
+        return (*(getattr(b, k, None) for k in DRAW_FIELDS), tr.blur_sub, float(tr.camera_blur) if tr.blur_sub > 1 else 0.0,
+                bool(getattr(tr.rig, "pose_on", False)), tr.grid.bits, tr.grid.stop)
+
+    @staticmethod
+    def same_draw(a: tuple, b: tuple) -> bool:
+        """Whether two :meth:`draw_token` values are the same draw: the same tensor objects (not
+        equal values: a graph reads the memory it was recorded with), the same plain values."""
+        return len(a) == len(b) and all(x is y if isinstance(x, torch.Tensor) or isinstance(y, torch.Tensor) else x == y
+                                        for x, y in zip(a, b))
+
+    def drawn(self, tr, n: int, p: float) -> tuple | None:
+        """A capped step (:meth:`capped`) whose ray draw and march replay one recorded graph.
+
+        Given the ray count ``n``: the buffers of the last eager draw of ``n`` rays, the same draw
+        token as now, and a captured compute graph for the planned key that reads those buffers,
+        the draw graph (recorded on first use: the draw with the default CUDA generator, the
+        copies into the input buffers, the capped march into the entry's sample buffers) is
+        replayed. Returns (key, entry) for :meth:`run_capped`, or None: the step draws eagerly.
+        """
+        got = self._drawn.get(n) if self.draws_on else None
+        if got is None:
+            return None
+        (batch, xr), token = got
+        now = self.draw_token(tr)
+        if not self.same_draw(token, now) or getattr(tr.bank, "port", None) is not None:
+            return None  # (a flat port's refraction loops over the frames on the host)
+        est = self._estimate(n)
+        if est is None:
+            return None
+        key, e = self._plan(tr, batch, xr, est, p, create=False)
+        if e is None or e.graph is None or e.batch["origins"] is not batch["origins"] or e.xr is not xr:
+            return None
+        if e.draw is None or not self.same_draw(e.draw[0], now):
+            e.draw = None
+            g = self._record_draw(tr, n, e)
+            if g is None:
+                return None
+            e.draw = (now, g)
+        e.draw[1].replay()
+        self.drawn_steps += 1
+        return key, e
+
+    def _record_draw(self, tr, n: int, e: _Entry):
+        """Record ``e``'s draw graph (nothing runs: the caller replays it). None after a failed capture,
+        which turns the draw graphs off for the run with one printed line (the compute graphs stay)."""
+        t0 = time.perf_counter()
+        cur = torch.cuda.current_stream(self.device)
+        self.side.wait_stream(cur)
+        g = torch.cuda.CUDAGraph()
+        try:
+            with torch.cuda.graph(g, stream=self.side):
+                batch, xr = tr.draw(n, None)  # the default generator: torch registers it with every capture
+                if set(batch) != set(e.batch):
+                    raise ValueError(f"the draw's fields {sorted(batch)} are not the buffers' {sorted(e.batch)}")
+                for k, v in batch.items():
+                    e.batch[k].copy_(v)
+                e.xr.copy_(xr)
+                march_samples_capped(tr.grid.bits, tr.grid.resolution, e.batch["origins"], e.batch["dirs"], tr.cfg,
+                                     e.capped_buffers(), stop=tr.grid.stop)
+        except Exception as err:  # noqa: BLE001 - a failed capture falls back to eager draws
+            self.draws_on = False
+            if self.console is not None:
+                self.console.print(f"CUDA graph of the ray draw failed ({type(err).__name__}: "
+                                   f"{str(err).splitlines()[0][:120]}); rays are drawn eagerly")
+            return None
+        finally:
+            cur.wait_stream(self.side)
+        self.captures.append({"step": tr.step, "rays": n, "capacity": e.capacity, "draw": True,
+                              "seconds": round(time.perf_counter() - t0, 4)})
+        return g
 
     def _from_inputs(self, batch: dict) -> bool:
         """Whether ``batch`` is one of :meth:`inputs`' fixed buffer sets (an entry keeps those)."""
@@ -395,7 +494,7 @@ class StepGraphs:
         graph at 2^18 samples) outlived the run until Python's cycle collector freed the trainer,
         so a second scene trained in the same process (the Python API in a loop, quality.py)
         found the GPU full: the H100 ran out of memory in the third 10-s run."""
-        self._inputs = {}
+        self._inputs, self._drawn = {}, {}
         if not self.cache:
             return
         self.cache.clear()
@@ -405,4 +504,4 @@ class StepGraphs:
     def summary(self) -> dict:
         return {"graphs": len(self.cache), "captured": self.captured, "replayed": self.replayed, "eager": self.eager,
                 "eager_reasons": dict(self.eager_reasons), "evicted": self.evicted, "unsynced": self.unsynced,
-                "captures": self.captures[:64]}
+                "drawn": self.drawn_steps, "captures": self.captures[:64]}

@@ -714,21 +714,21 @@ class Trainer:
         self._set_lr(p)
         graphs = self.graphs if self.graphs is not None and self.graphs.eligible(self, p) else None
         n = graphs.ray_count(self.n_rays) if graphs is not None else self.n_rays
-        sub = self.blur_sub
-        batch = self.rig.rays(self.bank.sample(max(1, n // sub), self.gen, bright_fraction=c.rays.bright_fraction,
-                                               blur=self.camera_blur if sub > 1 else 0.0, sub=sub))
-        # a few uniform points for the eikonal term so the far field stays an SDF; they go through
-        # the field in the same call as the samples (one hash + MLP pass instead of two)
-        xr = torch.rand(max(256, n // 4), 3, device=self.device, generator=self.gen) * 2 - 1
-        capped = None
-        if graphs is not None:  # into the graphs' fixed input buffers before the march's host sync
-            batch, xr = graphs.inputs(batch, xr)
-            # a key planned from the last sample count read back: the march writes into its graph's
-            # buffers and the replay follows with no host sync (graphstep.StepGraphs.capped)
-            capped = graphs.capped(self, batch, xr, p)
+        # a replayed graph of the draw and the capped march (graphstep.StepGraphs.drawn): no host work
+        # for either, as the ray draw's ~30 small ops and the march's launches were ~1.7 of a step's
+        # 4.4 ms of host time on an H200 (perf note 37)
+        capped = graphs.drawn(self, n, p) if graphs is not None else None
+        if capped is None:
+            batch, xr = self.draw(n, self.gen)
+            if graphs is not None:  # into the graphs' fixed input buffers before the march's host sync
+                batch, xr = graphs.inputs(batch, xr, drawn=(n, graphs.draw_token(self)))
+                # a key planned from the last sample count read back: the march writes into its graph's
+                # buffers and the replay follows with no host sync (graphstep.StepGraphs.capped)
+                capped = graphs.capped(self, batch, xr, p)
+                if capped is not None:
+                    march_samples_capped(self.grid.bits, self.grid.resolution, batch["origins"], batch["dirs"], c,
+                                         capped[1].capped_buffers(), stop=self.grid.stop)
         if capped is not None:
-            march_samples_capped(self.grid.bits, self.grid.resolution, batch["origins"], batch["dirs"], c,
-                                 capped[1].capped_buffers(), stop=self.grid.stop)
             s = graphs.samples_estimate(n)
         else:
             # a replayed step's samples go straight into its graph's fixed buffers (graphs.march_out)
@@ -759,6 +759,24 @@ class Trainer:
             return None
         rec["spr"], rec["samples"] = s / n, s
         return rec
+
+    def draw(self, n: int, generator: torch.Generator | None) -> tuple[dict, torch.Tensor]:
+        """This step's random rays and the eikonal term's uniform points.
+
+        Args:
+            n: ray count (pixels x ``blur_sub`` rays each); generator: the run's (``self.gen``), or
+                None for the default one (a recorded draw graph: graphstep.StepGraphs.drawn).
+        Returns:
+            (batch, xr): :meth:`RayBank.sample`'s dict after the rig's corrections, and [max(256, n / 4), 3]
+            uniform points in [-1, 1]^3.
+        """
+        c, sub = self.cfg, self.blur_sub
+        batch = self.rig.rays(self.bank.sample(max(1, n // sub), generator, bright_fraction=c.rays.bright_fraction,
+                                               blur=self.camera_blur if sub > 1 else 0.0, sub=sub))
+        # a few uniform points for the eikonal term so the far field stays an SDF; they go through
+        # the field in the same call as the samples (one hash + MLP pass instead of two)
+        xr = torch.rand(max(256, n // 4), 3, device=self.device, generator=generator) * 2 - 1
+        return batch, xr
 
     def _next_ray_count(self, n: int, s: int) -> int:
         """The ray count adapted to the sample budget after a step of ``n`` rays and ``s`` samples."""
