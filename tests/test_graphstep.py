@@ -31,6 +31,10 @@ class _KeyTrainer:
     def photo_priors(p):
         return False, False
 
+    @staticmethod
+    def prior_on(p):
+        return False
+
 def test_buckets_hold_the_count_and_are_few():
     for n in list(range(8, 3000, 7)) + [65536, 100_003]:
         r = ray_bucket(n)
@@ -97,6 +101,20 @@ def _inputs(tr, p: float):
     if tr.device.type == "cuda":  # the march's jitter comes from the default CUDA generator
         tr.rng_before_march = torch.cuda.get_rng_state(tr.device)
     return batch, xr, march_samples(tr.grid.bits, tr.grid.resolution, batch["origins"], batch["dirs"], c)
+
+
+def _sphere_prior(device):
+    """A SurfacePrior of 400 points on a sphere of radius 0.5 seen from a camera at z = -3, with
+    100 background rays (a stand-in for a one-shot's plane sweep)."""
+    from fastneus.train.geometry_init import SurfacePrior
+
+    g = torch.Generator().manual_seed(11)
+    pts = torch.nn.functional.normalize(torch.randn(400, 3, generator=g), dim=-1) * 0.5
+    cam = torch.tensor([0.0, 0.0, -3.0]).expand(400, 3)
+    dirs = torch.nn.functional.normalize(pts - cam, dim=-1)
+    bg_dirs = torch.nn.functional.normalize(torch.tensor([0.45, 0.0, 1.0]) + 0.05 * torch.randn(100, 3, generator=g), dim=-1)
+    return SurfacePrior(pts.to(device), dirs.to(device), cam.contiguous().to(device),
+                        bg_origins=cam[:100].contiguous().to(device), bg_dirs=bg_dirs.to(device))
 
 
 def _params(tr):
@@ -219,7 +237,8 @@ def test_shared_inputs_are_fixed_per_layout_and_not_copied_again():
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="CUDA graphs need a CUDA device")
 @pytest.mark.parametrize("extra", [[], ["hull=bound"], ["mask_start=on", "mask_weight_start=0.8", "mask_start_frac=0.3"],
-                                   ["mask_loss=mixed"], "train-step path", ["masks=off", "bg_prior=on"]])
+                                   ["mask_loss=mixed"], "train-step path", ["masks=off", "bg_prior=on"],
+                                   "surface prior"])
 def test_cuda_replayed_graph_matches_the_eager_step(tmp_path, extra):
     """Graph steps (first: eager on the side stream + capture; then replays) against eager
     steps on the same inputs: the same loss and parameters after every step. The scene is
@@ -230,7 +249,11 @@ def test_cuda_replayed_graph_matches_the_eager_step(tmp_path, extra):
     from fastneus.train.graphstep import StepGraphs
 
     path = extra == "train-step path"
-    a, b = _pair(scene_on(None, tmp_path, "cuda"), tmp_path, "cuda", [] if path else extra)
+    prior = extra == "surface prior"  # a one-shot's: faded weight and drawn points inside the graph; off past 0.45
+    a, b = _pair(scene_on(None, tmp_path, "cuda"), tmp_path, "cuda",
+                 ["prior_frac=0.45"] if prior else [] if path else extra)
+    if prior:
+        a.prior = b.prior = _sphere_prior("cuda")
     a.field._dev_sched = False  # StepGraphs switches it on
     graphs = StepGraphs(a)
     # coarse-to-fine still opening levels (the kernels read the count at replay), then over; the
@@ -244,6 +267,10 @@ def test_cuda_replayed_graph_matches_the_eager_step(tmp_path, extra):
         batch, xr, smp = _inputs(b, p)
         a.field.set_progress(p)
         a._set_lr(p)
+        if prior:  # the eager steps draw the prior's points from the run's generator, a replay from the default one
+            st = torch.cuda.get_rng_state(a.device)
+            a.gen.set_state(st)
+            b.gen.set_state(st)
         rb = b.compute(batch, xr, smp, p)
         ra = None
         if path:  # the same rays, the same march jitter, through the train-step route
@@ -267,6 +294,7 @@ def test_cuda_replayed_graph_matches_the_eager_step(tmp_path, extra):
         torch.testing.assert_close(ra["loss"], rb["loss"], rtol=1e-4, atol=1e-6)
         _close(a, b, f"step {i}")
         assert float(a.mask_w_dev) == pytest.approx(a.mask_weight_at(p))
+        assert not prior or float(a.prior_w_dev) == pytest.approx(a.prior_weight_at(p))
         if ramp:  # the ramp's steps, past the cos-anneal and coarse-to-fine ramps
             assert float(a.bg_w_dev) == pytest.approx(a.background_weight_at(p))
             assert p == 0.5 or 0.0 < a.background_weight_at(p) < a.bg_weight
@@ -511,10 +539,12 @@ def test_eager_steps_are_counted_by_reason():
     start = cfg.loss.bg_start_frac
     assert g.eligible(tr, start * 1.5)  # inside the background prior's ramp: its weight is on the device
     tr.prior = object()
-    assert not g.eligible(tr, 0.9)
+    assert g.eligible(tr, 0.9)  # the surface prior's weight and draws are in the graph too
     tr.prior, tr.rig.active = None, True
     assert not g.eligible(tr, 0.9)
-    assert g.eager == 2 and g.eager_reasons == {"surface prior": 1, "rig corrections": 1}
+    tr.rig.active, tr.field.active_levels, tr.field.sdf_grad = False, 8, "fd"
+    assert not g.eligible(tr, 0.2)
+    assert g.eager == 2 and g.eager_reasons == {"rig corrections": 1, "coarse-to-fine taps": 1}
     g.enabled = False
     assert g.ineligible(tr, 0.9) == "capture failed"
 
@@ -648,3 +678,40 @@ def test_cuda_drawn_graph_matches_the_eager_draw(tmp_path):
     live = min(int(out[2]), cap)
     for name, a, b in zip(("t0", "t1", "ray_index"), rsmp[3:], out[3:]):
         assert torch.equal(a[:live], b[:live]), name
+
+
+def test_device_scalars_give_the_eager_loss_with_the_surface_prior(small_scene, tmp_path, monkeypatch):
+    """A one-shot's fading surface prior in a captured step: the weight read from the device scalar
+    ``fill_step_scalars`` wrote and the points drawn from the default generator give the eager
+    loss (the run's generator in the same state); past ``init.prior_frac`` the term is off, its
+    weight 0, and the step's graph key says so. On the CPU, by letting ``step_loss`` take its
+    capturing branch."""
+    from fastneus.train.graphstep import StepGraphs
+
+    a, b = _pair(small_scene, tmp_path, "cpu", ["prior_frac=0.6"])
+    a.prior = b.prior = _sphere_prior("cpu")
+    a.cos_dev = torch.ones((1,))
+    a.mask_w_dev = torch.full((), a.mask_weight_at(0.0))
+    a.prior_w_dev = torch.zeros(())
+    keys = set()
+    for p in (0.1, 0.3, 0.55, 0.7):
+        batch, xr, smp = _inputs(b, p)
+        a.field.set_progress(p)
+        a._set_lr(p)
+        a.fill_step_scalars(p)
+        assert float(a.prior_w_dev) == pytest.approx(a.prior_weight_at(p))
+        assert (a.prior_weight_at(p) > 0) == a.prior_on(p) == (p < 0.6)
+        keys.add(StepGraphs._key(None, a, batch, 4096, p))
+        with torch.no_grad():
+            torch.manual_seed(17)
+            b.gen.manual_seed(17)
+            lb, tb = b.step_loss(batch, xr, smp, p)
+            monkeypatch.setattr(torch.cuda, "is_current_stream_capturing", lambda: True)
+            la, ta = a.step_loss(batch, xr, smp, p)
+            monkeypatch.undo()
+        assert ("prior" in ta) == ("prior" in tb) == (p < 0.6)
+        if p < 0.6:
+            assert float(ta["prior"]) > 0
+            torch.testing.assert_close(ta["prior"], tb["prior"], rtol=1e-5, atol=1e-8)
+        torch.testing.assert_close(la, lb, rtol=1e-5, atol=1e-7)
+    assert len(keys) == 2  # with the prior, and without it past prior_frac

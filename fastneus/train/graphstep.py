@@ -14,9 +14,10 @@ and replayed as one graph launch, given that
   corrections (``Adam.prepare_device_step``), the sharpness floor and the number of active hash
   levels (``SDFField.enable_device_schedule``), the NeuS cos-anneal ratio (``Trainer.cos_dev``), the
   mask loss's weight (``Trainer.mask_w_dev``, ``loss.mask_weight_start``), the background prior's
-  ramped-in weight (``Trainer.bg_w_dev``);
-- nothing else changes: steps with the fading surface prior, pose / blur / water corrections, or
-  a step count that differs inside a parameter group run eagerly (:meth:`StepGraphs.eligible`).
+  ramped-in weight (``Trainer.bg_w_dev``), the decoded / swept surface prior's faded weight
+  (``Trainer.prior_w_dev``; its points drawn with the default CUDA generator in the graph);
+- nothing else changes: steps with pose / blur / water corrections, or a step count that differs
+  inside a parameter group run eagerly (:meth:`StepGraphs.eligible`).
 
 A step whose sample count is not read back (a *capped* step: its capacity planned from the last
 count read back, :meth:`StepGraphs.capped`) also replays the ray draw and the march as a second,
@@ -180,6 +181,8 @@ class StepGraphs:
         trainer.mask_w_dev = torch.full((), trainer.mask_weight_at(0.0), device=self.device)
         # the background prior's weight, ramped in per step (losses.background_ramp)
         trainer.bg_w_dev = torch.full((), trainer.bg_weight, device=self.device)
+        # the surface prior's weight, faded per step (losses.prior_fade; the one-shot's whole run)
+        trainer.prior_w_dev = torch.zeros((), device=self.device)
 
     def ineligible(self, tr, p: float) -> str | None:
         """Why this step's compute part cannot replay a graph (None: it can): a value in it
@@ -191,8 +194,6 @@ class StepGraphs:
             return "rig corrections"
         if not isinstance(tr.bank, RayBank):
             return "multi-shot bank"
-        if tr.prior is not None and p < c.init.prior_frac:
-            return "surface prior"
         # the curvature taps' and finite differences' step follows the finest active level
         taps = c.loss.curvature_weight > 0 or tr.field.sdf_grad == "fd"
         if taps and tr.field.active_levels < tr.field.hashgrid.levels:
@@ -213,7 +214,7 @@ class StepGraphs:
         self.eager_reasons[why] = self.eager_reasons.get(why, 0) + 1
 
     def _key(self, tr, batch: dict, capacity: int, p: float) -> tuple:
-        return (batch["origins"].shape[0], capacity, *tr.photo_priors(p), tuple(sorted(batch)))
+        return (batch["origins"].shape[0], capacity, *tr.photo_priors(p), tr.prior_on(p), tuple(sorted(batch)))
 
     def ray_count(self, n: int) -> int:
         """The ray count of this step: the last one while ``n`` stays within :data:`RAY_SLACK` of

@@ -333,6 +333,7 @@ class Trainer:
         self.cos_dev: torch.Tensor | None = None  # [1] cos-anneal ratio on the device (with graphs)
         self.mask_w_dev: torch.Tensor | None = None  # [] the mask loss's weight on the device (with graphs)
         self.bg_w_dev: torch.Tensor | None = None  # [] the background prior's ramped weight on the device (graphs)
+        self.prior_w_dev: torch.Tensor | None = None  # [] the surface prior's faded weight on the device (graphs)
         if self.device.type == "cuda" and cfg.run.cuda_graph != "off":
             from fastneus.train.graphstep import StepGraphs
 
@@ -448,6 +449,18 @@ class Trainer:
             self.mask_w_dev.fill_(self.mask_weight_at(p))
         if self.bg_w_dev is not None and self.bg_used:
             self.bg_w_dev.fill_(self.background_weight_at(p))
+        if self.prior_w_dev is not None and self.prior is not None:
+            self.prior_w_dev.fill_(self.prior_weight_at(p))
+
+    def prior_on(self, p: float) -> bool:
+        """Whether the step at progress ``p`` has the surface prior's term (a decoded or swept
+        start, ``init.prior_weight`` > 0, before ``init.prior_frac``)."""
+        return self.prior is not None and p < self.cfg.init.prior_frac
+
+    def prior_weight_at(self, p: float) -> float:
+        """The surface prior's weight at progress ``p`` (:func:`losses.prior_fade`; 0 once it is off)."""
+        c = self.cfg.init
+        return losses.prior_fade(p, c.prior_weight, c.prior_frac) if self.prior_on(p) else 0.0
 
     def background_weight_at(self, p: float) -> float:
         """The background prior's weight at progress ``p``: ``bg_weight`` times its ramp-in
@@ -876,9 +889,12 @@ class Trainer:
                 rgb = batch["rgb"]
                 is_fg = ((rgb.reshape(rgb.shape[0], -1).amax(-1) - c.rays.background) > c.loss.fg_threshold).float()
             terms |= losses.foreground_opacity(opacity, is_fg, self.bg_weight)
-        if self.prior is not None and p < c.init.prior_frac:
-            w = losses.prior_fade(p, c.init.prior_weight, c.init.prior_frac)
-            terms |= losses.surface_prior(self.prior.loss(self.field, fit_batch(c) // 2, self.gen, eikonal=False), w)
+        if self.prior_on(p):
+            # a graph being recorded reads the faded weight from the device and draws its points with
+            # the default CUDA generator (torch registers it with every capture; the run's is not)
+            w = self.prior_w_dev if capturing else self.prior_weight_at(p)
+            gen = None if capturing else self.gen
+            terms |= losses.surface_prior(self.prior.loss(self.field, fit_batch(c) // 2, gen, eikonal=False), w)
         if self.hull_out is not None and c.occupancy.hull_weight > 0:
             r = self.grid.resolution
             ijk = ((xr + 1.0) * (r / 2.0)).long().clamp(0, r - 1)
