@@ -262,8 +262,13 @@ def test_cuda_replayed_graph_matches_the_eager_step(tmp_path, extra):
     ramp = isinstance(extra, list) and "masks=off" in extra  # through the background prior's ramp-in
     if ramp:
         assert a.bg_used and a.photo_priors(0.25)[0]
-    for i, p in enumerate([0.22, 0.25, 0.28, 0.31, 0.34, 0.37, 0.5, 0.5] if ramp else
-                          [0.02, 0.04, 0.06, 0.08] + [0.5] * 4):
+    # with the prior: more steps per phase, so that both keys (prior on, then off) replay although a
+    # sample count past its capacity now and then costs a step a new key
+    progress = ([0.22, 0.25, 0.28, 0.31, 0.34, 0.37, 0.5, 0.5] if ramp else
+                [0.02, 0.03, 0.04, 0.05, 0.06, 0.07, 0.08] + [0.5] * 7 if prior else [0.02, 0.04, 0.06, 0.08] + [0.5] * 4)
+    replays = {}  # prior on / off -> replayed steps
+    for i, p in enumerate(progress):
+        before = graphs.replayed
         batch, xr, smp = _inputs(b, p)
         a.field.set_progress(p)
         a._set_lr(p)
@@ -295,6 +300,7 @@ def test_cuda_replayed_graph_matches_the_eager_step(tmp_path, extra):
         _close(a, b, f"step {i}")
         assert float(a.mask_w_dev) == pytest.approx(a.mask_weight_at(p))
         assert not prior or float(a.prior_w_dev) == pytest.approx(a.prior_weight_at(p))
+        replays[a.prior_on(p)] = replays.get(a.prior_on(p), 0) + graphs.replayed - before
         if ramp:  # the ramp's steps, past the cos-anneal and coarse-to-fine ramps
             assert float(a.bg_w_dev) == pytest.approx(a.background_weight_at(p))
             assert p == 0.5 or 0.0 < a.background_weight_at(p) < a.bg_weight
@@ -303,6 +309,7 @@ def test_cuda_replayed_graph_matches_the_eager_step(tmp_path, extra):
         assert (a.field.active_levels < a.field.hashgrid.levels) == (p < 0.1)
         assert int(a.field._levels_t[0]) == a.field.active_levels
     assert graphs.captured >= 1 and graphs.replayed >= 4, graphs.summary()
+    assert not prior or (replays.get(True, 0) >= 1 and replays.get(False, 0) >= 1), (replays, graphs.summary())
     assert graphs.enabled
     assert not path or graphs.unsynced >= 2, graphs.summary()
     assert int(a._overflow_dev) == 0
