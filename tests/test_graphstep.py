@@ -722,3 +722,42 @@ def test_device_scalars_give_the_eager_loss_with_the_surface_prior(small_scene, 
             torch.testing.assert_close(ta["prior"], tb["prior"], rtol=1e-5, atol=1e-8)
         torch.testing.assert_close(la, lb, rtol=1e-5, atol=1e-7)
     assert len(keys) == 2  # with the prior, and without it past prior_frac
+
+
+@pytest.mark.parametrize("extra", [[], ["masks=off", "bg_prior=on"]])
+def test_the_draw_token_covers_every_tensor_a_draw_reads(small_scene, tmp_path, extra):
+    """A recorded draw graph reads the bank's tensors where they were when it was recorded, and
+    StepGraphs.draw_token retires it when one of DRAW_FIELDS is replaced. Every tensor attribute
+    the draw reads (RayBank.sample and the methods it calls, traced through a proxy) must be one
+    of them, or replacing it would leave a graph reading stale memory."""
+    import types
+
+    from fastneus.train.graphstep import DRAW_FIELDS
+    from fastneus.train.rays import RayBank
+    from fastneus.train.trainer import Trainer
+
+    cfg = load_config("cpu-quick", SMALL_RUN + ["threads=1", "bright_fraction=0.3"] + extra)
+    tr = Trainer(Scene.load(small_scene), cfg, tmp_path / "r", "cpu")
+    bank = tr.bank
+    if "masks=off" in extra:
+        bank.set_halo(1, 0.5)  # the halo's weights too (bg_soft)
+        assert bank.fg is not None and bank.bg is not None and bank.bg_soft is not None
+    assert bank.cdf is not None
+
+    class Spy:
+        def __init__(self):
+            object.__setattr__(self, "seen", set())
+
+        def __getattr__(self, k):
+            v = getattr(bank, k)
+            if isinstance(v, torch.Tensor):
+                self.seen.add(k)
+            elif callable(v) and callable(getattr(RayBank, k, None)):
+                return types.MethodType(getattr(RayBank, k), self)  # its reads through the spy too
+            return v
+
+    spy = Spy()
+    out = RayBank.sample(spy, 64, tr.gen, bright_fraction=0.3)
+    assert out["origins"].shape == (64, 3)
+    assert {"rgb", "offset", "wh", "kinv", "rot", "origin"} <= spy.seen
+    assert spy.seen <= set(DRAW_FIELDS), spy.seen - set(DRAW_FIELDS)
