@@ -265,6 +265,9 @@ class Trainer:
         self._patterns: dict | None = None  # pattern images kept on a GPU (pattern_images)
         self._blurred: dict = {}  # sigma -> blurred PatternStore kept on a GPU (blurred_store)
         self.blur_due: list[float] = ([fr[0]] + ([fr[1]] if fr[1] > fr[0] else [])) if blur is None else []
+        # loss.fg_halo waits for this progress (update_fg_halo; the blur's decisions also call it)
+        self.fg_halo_due: float | None = cfg.loss.fg_halo_frac if cfg.loss.fg_halo > 0 and cfg.loss.fg_halo_frac > 0 else None
+        self._fg_halo_share = 0.0  # the share the bank's flags are trimmed with now (not the saved decision's)
         self.blur_decision: dict = {"mode": "auto", "at_frac": list(self.blur_due), "sigma": None, "rounds": []} \
             if blur is None else {"mode": "set", "sigma": blur}
         self.camera_blur = 0.0 if blur is None else blur  # the blur in use, camera px
@@ -676,12 +679,33 @@ class Trainer:
             r = halo_radius(self.camera_blur)
             b.set_halo(r, self.cfg.loss.bg_halo)
         self.blur_decision["halo_px"] = r
+        self.update_fg_halo()
+
+    def update_fg_halo(self) -> None:
+        """Without masks in a dark room, once the camera blur is known and from ``loss.fg_halo_frac``
+        of the run: the foreground flags without the lens's halo (``loss.fg_halo``,
+        :func:`fastneus.train.rays.trim_halo`); the share used goes into :attr:`blur_decision`
+        (``fg_halo``, 0 while it waits or does not apply)."""
+        c, b = self.cfg.loss, self.bank
+        if c.fg_halo <= 0 or not self.fg_used or not hasattr(b, "set_fg_halo") or b.lit_room:
+            return
+        share = c.fg_halo if self.camera_blur > 0 and self.fg_halo_due is None else 0.0  # (None: due, or no wait)
+        if share != self._fg_halo_share:
+            b.set_fg_halo(share)
+            self._fg_halo_share = share
+            if share > 0 and self.console is not None:
+                self.console.print(f"foreground flags: the lens's halo left out (fg_halo {share:g}, at step {getattr(self, 'step', 0)})",
+                                   soft_wrap=True, highlight=False, markup=False)
+        self.blur_decision["fg_halo"] = share
 
     def blur_note(self) -> str:
         """One line on the camera blur in use (printed; run.json keeps :attr:`blur_decision`)."""
         d = self.blur_decision
         halo = (f"; its halo ({d['halo_px']} px around the object) counts as background (bg_halo)"
                 if d.get("halo_px") else "")
+        if d.get("fg_halo"):
+            halo += (f"; foreground pixels beside the backdrop under {d['fg_halo']:g} of their brightest neighbour "
+                     "are its halo, not the object (fg_halo)")
         if d["mode"] == "set":
             return f"camera blur: {d['sigma']:g} px (set){halo}"
         if d.get("sigma") is None:
@@ -722,6 +746,9 @@ class Trainer:
             self.decide_exposure()
         if self.blur_due and p >= self.blur_due[0]:
             self.decide_camera_blur()
+        if self.fg_halo_due is not None and p >= self.fg_halo_due:
+            self.fg_halo_due = None
+            self.update_fg_halo()
         self.field.set_progress(p)
         self.update_grid(p)
         self._set_lr(p)
