@@ -755,7 +755,7 @@ class Trainer:
         graphs = self.graphs if self.graphs is not None and self.graphs.eligible(self, p) else None
         n = graphs.ray_count(self.n_rays) if graphs is not None else self.n_rays
         # a replayed graph of the draw and the capped march (graphstep.StepGraphs.drawn): no host work
-        # for either, as the ray draw's ~30 small ops and the march's launches were ~1.7 of a step's
+        # for either, as the ray draw's ~30 small ops and the march's launches were ~1.7 ms of a step's
         # 4.4 ms of host time on an H200 (perf note 37)
         capped = graphs.drawn(self, n, p) if graphs is not None else None
         if capped is None:
