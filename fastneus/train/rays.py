@@ -67,6 +67,14 @@ def _brightness(codes: torch.Tensor, lut: torch.Tensor | None, background: float
     return values[codes.long()].amax(1) - float(background)
 
 
+def _per_frame(sizes: list[tuple[int, int]]):
+    """(the frame's rows of the concatenated pixels, H, W) for each frame of (W, H) ``sizes``."""
+    o = 0
+    for w, h in sizes:
+        yield slice(o, o + w * h), h, w
+        o += w * h
+
+
 def _bright_objects(bright: torch.Tensor, above: torch.Tensor) -> bool:
     """The pixels above the background (``above``) have a median brightness of at least
     :data:`LIT_ROOM` (in a dark room the ambient-lit object is far dimmer than the laser lines)."""
@@ -89,11 +97,10 @@ def lit_room(codes: torch.Tensor, lut: torch.Tensor | None, background: float, t
     above = bright > threshold
     if not _bright_objects(bright, above):
         return False
-    inside, o = 0, 0
-    for w, h in sizes:
-        a = above[o:o + w * h].reshape(1, 1, h, w).float()
+    inside = 0
+    for rows, h, w in _per_frame(sizes):
+        a = above[rows].reshape(1, 1, h, w).float()
         inside += int((-torch.nn.functional.max_pool2d(-a, 3, stride=1, padding=1) > 0.5).sum())
-        o += w * h
     return inside >= SOLID * int(above.sum())
 
 
@@ -117,12 +124,10 @@ def foreground_flags(codes: torch.Tensor, lut: torch.Tensor | None, background: 
     # lines crossing it and would fail the relative test (realistic ant Dark: 6.0 -> 40.8 mm)
     if not _bright_objects(bright, out):
         return out
-    o = 0
-    for w, h in sizes:
-        v = bright[o:o + w * h].reshape(1, 1, h, w)
+    for rows, h, w in _per_frame(sizes):
+        v = bright[rows].reshape(1, 1, h, w)
         near = torch.nn.functional.max_pool2d(v, 5, stride=1, padding=2)
-        out[o:o + w * h] &= (v >= relative * near).reshape(-1)
-        o += w * h
+        out[rows] &= (v >= relative * near).reshape(-1)
     return out
 
 
@@ -174,15 +179,12 @@ def trim_halo(fg: torch.Tensor, bg: torch.Tensor, bright: torch.Tensor, sizes: l
     """
     out = fg.clone()
     cross = torch.tensor([[0.0, 1.0, 0.0], [1.0, 0.0, 1.0], [0.0, 1.0, 0.0]], device=fg.device).view(1, 1, 3, 3)
-    o = 0
-    for w, h in sizes:
-        n = w * h
-        f = fg[o:o + n].reshape(1, 1, h, w)
-        beside = torch.nn.functional.conv2d(bg[o:o + n].reshape(1, 1, h, w).float(), cross, padding=1) > 0.5
-        v = bright[o:o + n].reshape(1, 1, h, w)
+    for rows, h, w in _per_frame(sizes):
+        f = fg[rows].reshape(1, 1, h, w)
+        beside = torch.nn.functional.conv2d(bg[rows].reshape(1, 1, h, w).float(), cross, padding=1) > 0.5
+        v = bright[rows].reshape(1, 1, h, w)
         near = torch.nn.functional.max_pool2d(torch.where(f, v, torch.zeros_like(v)), 3, stride=1, padding=1)
-        out[o:o + n] &= ~(f & beside & (v < share * near)).reshape(-1)
-        o += n
+        out[rows] &= ~(f & beside & (v < share * near)).reshape(-1)
     return out
 
 
@@ -217,16 +219,13 @@ def halo_weights(codes: torch.Tensor, lut: torch.Tensor | None, background: floa
         return out
     bright = _brightness(codes, lut, background)
     pool = torch.nn.functional.max_pool2d
-    o = 0
-    for w, h in sizes:
-        n = w * h
-        v = bright[o:o + n].reshape(1, 1, h, w)
+    for rows, h, w in _per_frame(sizes):
+        v = bright[rows].reshape(1, 1, h, w)
         ratio = (v / pool(v, 5, stride=1, padding=2).clamp(min=1e-6)).clamp(0.0, 1.0)
-        b = bg[o:o + n].reshape(1, 1, h, w)
-        band = (pool(b.float(), 2 * radius + 1, stride=1, padding=radius) > 0) & ~b & ~fg[o:o + n].reshape(1, 1, h, w)
+        b = bg[rows].reshape(1, 1, h, w)
+        band = (pool(b.float(), 2 * radius + 1, stride=1, padding=radius) > 0) & ~b & ~fg[rows].reshape(1, 1, h, w)
         wt = ((1.0 - ratio / share).clamp(0.0, 1.0) * 255).round().to(torch.uint8)
-        out[o:o + n] = torch.where(band, wt, out[o:o + n].reshape(1, 1, h, w)).reshape(-1)
-        o += n
+        out[rows] = torch.where(band, wt, out[rows].reshape(1, 1, h, w)).reshape(-1)
     return out
 
 
