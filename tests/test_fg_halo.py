@@ -39,18 +39,23 @@ def test_trim_halo_drops_the_dim_ring_beside_the_backdrop_and_keeps_the_part():
     assert torch.equal(two[:144], out.reshape(-1)) and torch.equal(two[144:], out.reshape(-1))
 
 
-def _dark_trainer(small_scene, tmp_path, extra=()):
+def _dark_trainer(small_scene, tmp_path, extra=(), console=None):
     from fastneus.train.trainer import Trainer
 
     run = SMALL_RUN + ["threads=1", "masks=off", "bg_prior=on", "fg_prior=on", "steps=10", "camera_blur=0.7",
                        "fg_halo=0.7", "fg_halo_frac=0.5"] + list(extra)
-    tr = Trainer(Scene.load(small_scene), load_config("cpu-quick", run), tmp_path / "r", "cpu")
+    tr = Trainer(Scene.load(small_scene), load_config("cpu-quick", run), tmp_path / "r", "cpu", console=console)
     tr.bank.__dict__["lit_room"] = False  # the sphere scene is lit: the rule is for a dark room
     return tr
 
 
 def test_the_trainer_trims_the_flags_from_fg_halo_frac_in_a_dark_room(small_scene, tmp_path):
-    tr = _dark_trainer(small_scene, tmp_path)
+    import io
+
+    from rich.console import Console
+
+    said = io.StringIO()
+    tr = _dark_trainer(small_scene, tmp_path, console=Console(file=said, width=200))
     assert tr.fg_used and tr.bank.fg is not None
     loaded = tr.bank.fg
     while tr.progress() < 0.5:
@@ -58,6 +63,7 @@ def test_the_trainer_trims_the_flags_from_fg_halo_frac_in_a_dark_room(small_scen
         assert tr.bank.fg is loaded and not tr.blur_decision.get("fg_halo")  # waits for half the run
     tr.train_step()
     assert tr.blur_decision["fg_halo"] == 0.7 and tr.bank.fg is not loaded
+    assert "the lens's halo left out from step 5 (fg_halo 0.7)" in said.getvalue()
     assert bool((tr.bank.fg <= loaded).all()) and "fg_halo" in tr.blur_note()
     b = tr.bank
     want = trim_halo(loaded, b.bg, _brightness(b.rgb, b.lut, b._background), b._room[1], 0.7)

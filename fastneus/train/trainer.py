@@ -693,9 +693,6 @@ class Trainer:
         if share != self._fg_halo_share:
             b.set_fg_halo(share)
             self._fg_halo_share = share
-            if share > 0 and self.console is not None:
-                self.console.print(f"foreground flags: the lens's halo left out (fg_halo {share:g}, at step {getattr(self, 'step', 0)})",
-                                   soft_wrap=True, highlight=False, markup=False)
         self.blur_decision["fg_halo"] = share
 
     def blur_note(self) -> str:
@@ -749,6 +746,10 @@ class Trainer:
         if self.fg_halo_due is not None and p >= self.fg_halo_due:
             self.fg_halo_due = None
             self.update_fg_halo()
+            if self.blur_decision.get("fg_halo") and self.console is not None:
+                self.console.print(f"foreground flags: the lens's halo left out from step {self.step} "
+                                   f"(fg_halo {self.blur_decision['fg_halo']:g})", soft_wrap=True, highlight=False,
+                                   markup=False)
         self.field.set_progress(p)
         self.update_grid(p)
         self._set_lr(p)
