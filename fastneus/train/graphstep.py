@@ -160,7 +160,7 @@ class StepGraphs:
     _lag: dict | None = None  # the capped steps' count read back (pinned host int, event)
     unsynced = 0  # replays planned without the march's host sync (capped)
     drawn_steps = 0  # ... of which the draw and the march replayed a graph too (drawn)
-    draws_on = True
+    draws_on = True  # recorded draw graphs (off for the run after a failed capture)
 
     def __init__(self, trainer, console=None):
         self.device = trainer.device
@@ -173,8 +173,6 @@ class StepGraphs:
         self.captures: list[dict] = []  # each capture's step, key sizes and host seconds (run.json)
         self._inputs: dict = {}  # batch layout -> (batch, xr) fixed buffers (inputs)
         self._drawn: dict = {}  # ray count -> (batch, xr) buffers of its last eager draw, its draw token
-        self.draws_on = True  # recorded draw graphs (off after a failed capture)
-        self.drawn_steps = 0  # steps whose draw and march replayed a graph
         trainer.field.enable_device_schedule()
         trainer.cos_dev = torch.ones((1,), device=self.device)  # the NeuS cos-anneal ratio, filled per step
         # the mask loss's weight: filled per step while loss.mask_start changes it

@@ -526,6 +526,7 @@ class RayBank:
         self.fg = None
         self.bg_soft = None  # [sum HW] uint8 background weight x 255 with the halo (set_halo), or None
         self._fg_load = None  # the foreground flags as read at load while set_fg_halo has trimmed self.fg
+        self.fg_halo_share = 0.0  # the share set_fg_halo trimmed self.fg with (0: the flags as loaded)
         self._room = (bg_cap, sizes)  # for lit_room, decided only when asked
         if background is not None and fg_relative > 0:
             self.fg = foreground_flags(self.rgb, self.lut, background, bg_cap, fg_relative, sizes)
@@ -570,9 +571,10 @@ class RayBank:
     def set_fg_halo(self, share: float) -> None:
         """Leave the lens's halo out of the foreground flags (:func:`trim_halo`) with ``share`` > 0,
         or put back the flags read at load with 0. A new tensor either way (a recorded draw graph
-        reads the old one: ``graphstep.DRAW_FIELDS``)."""
-        if self.fg is None or self.bg is None:
+        reads the old one: ``graphstep.DRAW_FIELDS``); nothing when ``share`` is the one in use."""
+        if self.fg is None or self.bg is None or share == self.fg_halo_share:
             return
+        self.fg_halo_share = share
         if self._fg_load is None:
             self._fg_load = self.fg
         self.fg = self._fg_load.clone() if share <= 0 else trim_halo(

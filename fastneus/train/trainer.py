@@ -267,7 +267,6 @@ class Trainer:
         self.blur_due: list[float] = ([fr[0]] + ([fr[1]] if fr[1] > fr[0] else [])) if blur is None else []
         # loss.fg_halo waits for this progress (update_fg_halo; the blur's decisions also call it)
         self.fg_halo_due: float | None = cfg.loss.fg_halo_frac if cfg.loss.fg_halo > 0 and cfg.loss.fg_halo_frac > 0 else None
-        self._fg_halo_share = 0.0  # the share the bank's flags are trimmed with now (not the saved decision's)
         self.blur_decision: dict = {"mode": "auto", "at_frac": list(self.blur_due), "sigma": None, "rounds": []} \
             if blur is None else {"mode": "set", "sigma": blur}
         self.camera_blur = 0.0 if blur is None else blur  # the blur in use, camera px
@@ -690,9 +689,7 @@ class Trainer:
         if c.fg_halo <= 0 or not self.fg_used or not hasattr(b, "set_fg_halo") or b.lit_room:
             return
         share = c.fg_halo if self.camera_blur > 0 and self.fg_halo_due is None else 0.0  # (None: due, or no wait)
-        if share != self._fg_halo_share:
-            b.set_fg_halo(share)
-            self._fg_halo_share = share
+        b.set_fg_halo(share)  # (the bank keeps its flags when the share is the one in use)
         self.blur_decision["fg_halo"] = share
 
     def blur_note(self) -> str:
