@@ -152,7 +152,8 @@ class OccupancySection:
                            "non-background pixels (specks of noise left out) stands in for the masks' in `hull`: auto "
                            "(cpu-quick's choice: ant, Dark, no masks, 600 steps, 3 seeds: ideal 8.05 -> 6.52 mm symmetric, "
                            "realistic 13.01 -> 11.59) | off; dropped, with its reason printed, where the views disagree (a noisy "
-                           "backdrop); off on the GPU (H200, 10 s: ant realistic 6.00 -> 6.26 mm, no cell better)", choices=("auto", "off"))
+                           "backdrop); fewview's too, with fg_halo (H200, 10 s, realistic, seeds 0-2: ant 6.26 -> 5.30 mm, airplane 10.79 -> "
+                           "10.09; alone it was no better: ant 6.00 -> 6.26)", choices=("auto", "off"))
     hull_keep: str = knob("off", "with masks: the hull's cells stay occupied in the grid (for hull_keep_frac of the "
                           "run), so a thin part the field has not formed when the grid first prunes is still sampled "
                           "and the masks can pull it in; cells deep inside (stop_rays) still end rays. auto = in a "
@@ -271,7 +272,8 @@ class LossSection:
                           "of the run: a foreground-flagged pixel beside a backdrop pixel (4-neighbour) under fg_halo x "
                           "the brightest flagged pixel within 1 px is the lens's halo, not the object, and loses its "
                           "flag (cpu-quick's choice, 0.7: realistic ant, Dark, no masks, 600 steps, seeds 0-2 9.81 -> "
-                          "7.48 mm symmetric; the GPU lost legs with it on 1 of 3-5 seeds: off there); 0 = off",
+                          "7.48 mm symmetric; fewview's with photo_hull, which keeps the legs sampled: H200, 10 s, seeds 0-2, ant 6.26 -> "
+                          "5.30 mm; alone the GPU lost legs on 1 of 3-5 seeds); 0 = off",
                           lo=0.0, hi=2.0)
     fg_halo_frac: float = knob(0.0, "fg_halo acts from this fraction of the run (late: the thin parts have formed; "
                                "from the blur's estimate a leg could be lost)", **FRAC)

@@ -92,7 +92,13 @@ def test_no_trim_in_a_lit_room_without_blur_or_with_masks(small_scene, tmp_path)
     assert masked.masks_used and not masked.fg_used and not masked.blur_decision.get("fg_halo")
 
 
-def test_the_cpu_preset_trims_late_and_the_gpu_preset_not():
-    cpu, gpu = load_config("cpu-quick").loss, load_config("fewview").loss
-    assert cpu.fg_halo == 0.7 and cpu.fg_halo_frac == 0.7
-    assert gpu.fg_halo == 0.0
+def test_both_presets_trim_late_with_the_photos_hull():
+    """The trim is measured only with the photos' hull holding the thin parts (alone the GPU lost
+    legs): every preset that trims also builds that hull, and neither keeps a masked hull on the GPU."""
+    for name in ("cpu-quick", "fewview"):
+        c = load_config(name)
+        assert c.loss.fg_halo == 0.7 and c.loss.fg_halo_frac == 0.7
+        assert c.occupancy.photo_hull == "auto"
+    assert load_config("fewview").occupancy.hull_keep == "off"
+    for name in ("paper", "oneshot", "passive"):
+        assert load_config(name).loss.fg_halo == 0.0
