@@ -272,8 +272,8 @@ class LossSection:
                           "of the run: a foreground-flagged pixel beside a backdrop pixel (4-neighbour) under fg_halo x "
                           "the brightest flagged pixel within 1 px is the lens's halo, not the object, and loses its "
                           "flag (cpu-quick's choice, 0.7: realistic ant, Dark, no masks, 600 steps, seeds 0-2 9.81 -> "
-                          "7.48 mm symmetric; fewview's with photo_hull, which keeps the legs sampled: H200, 10 s, seeds 0-2, ant 6.26 -> "
-                          "5.30 mm; alone the GPU lost legs on 1 of 3-5 seeds); 0 = off",
+                          "7.48 mm symmetric; fewview's, with photo_hull: H200, 10 s, seeds 0-2, ant 6.26 -> 5.30 mm; at 5 s one "
+                          "seed of two lost leg parts); 0 = off",
                           lo=0.0, hi=2.0)
     fg_halo_frac: float = knob(0.0, "fg_halo acts from this fraction of the run (late: the thin parts have formed; "
                                "from the blur's estimate a leg could be lost)", **FRAC)
