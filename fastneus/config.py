@@ -159,7 +159,8 @@ class OccupancySection:
                           "and the masks can pull it in; cells deep inside (stop_rays) still end rays. auto = in a "
                           "dark room (cpu-quick's choice: realistic ant, Dark, masks, 600 steps, 3 seeds 7.73 -> 3.87 "
                           "mm symmetric, its legs no longer lost; lit rooms 2-6 % worse); on | off; off on the GPU (H200, "
-                          "10 s: the ant's legs form in time there; masked rock realistic 8.05 -> 8.34 mm)",
+                          "10 s: the ant's legs form in time there; masked rock realistic 8.05 -> 8.34 mm, again 6.24 -> "
+                          "6.77 on three seeds at 2928f64)",
                           choices=("auto", "on", "off"))
     hull_keep_frac: float = knob(1.0, "hull_keep: the fraction of the run it lasts (0.5 kept the legs on 2 of 5 seeds, "
                                  "1.0 on 4 of 5)", **FRAC)

@@ -277,12 +277,13 @@ class StepGraphs:
         replayed. Returns (key, entry) for :meth:`run_capped`, or None: the step draws eagerly.
         """
         got = self._drawn.get(n) if self.draws_on else None
-        if got is None:
+        # (a flat port's refraction loops over the frames on the host: never a draw graph, no token built)
+        if got is None or getattr(tr.bank, "port", None) is not None:
             return None
         (batch, xr), token = got
         now = self.draw_token(tr)
-        if not self.same_draw(token, now) or getattr(tr.bank, "port", None) is not None:
-            return None  # (a flat port's refraction loops over the frames on the host)
+        if not self.same_draw(token, now):
+            return None
         est = self._estimate(n)
         if est is None:
             return None
