@@ -148,12 +148,14 @@ class OccupancySection:
                      "shapes within +-4 %; bound: rock 5 s 7.19 -> 6.14 but the nut and toy worse, CPU worse)",
                      choices=("auto", "loss", "bound", "off"))
     hull_weight: float = knob(1.0, "weight of the hull's free-space term (mean over the uniform points)", lo=0.0)
-    photo_hull: str = knob("off", "without masks in a dark room (the foreground prior on), the hull of the photos' "
-                           "non-background pixels (specks of noise left out) stands in for the masks' in `hull`: auto "
-                           "(cpu-quick's choice: ant, Dark, no masks, 600 steps, 3 seeds: ideal 8.05 -> 6.52 mm symmetric, "
-                           "realistic 13.01 -> 11.59) | off; dropped, with its reason printed, where the views disagree (a noisy "
-                           "backdrop); fewview's too, with fg_halo (H200, 10 s, realistic, seeds 0-2: ant 6.26 -> 5.30 mm, airplane 10.79 -> "
-                           "10.09; alone it was no better: ant 6.00 -> 6.26)", choices=("auto", "off"))
+    photo_hull: str = knob("off", "without masks, with the foreground prior on (frames >= 85 % backdrop), the hull of "
+                           "the photos' non-background pixels (specks of noise left out) stands in for the masks' in `hull`: "
+                           "auto (cpu-quick's choice: ant, Dark, no masks, 600 steps, 3 seeds: ideal 8.05 -> 6.52 mm symmetric, "
+                           "realistic 13.01 -> 11.59; a lit room's ideal ant mixed, 5.22 / 6.38 -> 5.99 / 5.94 on seeds 0 / 1) | "
+                           "dark = only where the object is dim beside the laser lines (not `lit_room`; fewview's choice: H200, "
+                           "10 s, ideal ant, seeds 0-1, 2.76 -> 2.70 mm; on the realistic 200-px ant the views disagree "
+                           "and it is dropped) | off; dropped, with its reason printed, where the "
+                           "views disagree (a noisy backdrop)", choices=("auto", "dark", "off"))
     hull_keep: str = knob("off", "with masks: the hull's cells stay occupied in the grid (for hull_keep_frac of the "
                           "run), so a thin part the field has not formed when the grid first prunes is still sampled "
                           "and the masks can pull it in; cells deep inside (stop_rays) still end rays. auto = in a "
@@ -273,7 +275,7 @@ class LossSection:
                           "of the run: a foreground-flagged pixel beside a backdrop pixel (4-neighbour) under fg_halo x "
                           "the brightest flagged pixel within 1 px is the lens's halo, not the object, and loses its "
                           "flag (cpu-quick's choice, 0.7: realistic ant, Dark, no masks, 600 steps, seeds 0-2 9.81 -> "
-                          "7.48 mm symmetric; fewview's, with photo_hull: H200, 10 s, seeds 0-2, ant 6.26 -> 5.30 mm; at 5 s one "
+                          "7.48 mm symmetric; fewview's: H200, 10 s, realistic ant, seeds 0-2, 6.26 -> 5.30 mm; at 5 s one "
                           "seed of two lost leg parts); 0 = off",
                           lo=0.0, hi=2.0)
     fg_halo_frac: float = knob(0.0, "fg_halo acts from this fraction of the run (late: the thin parts have formed; "

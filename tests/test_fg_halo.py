@@ -96,10 +96,10 @@ def test_both_presets_trim_late_with_the_photos_hull():
     """The trim was measured together with the photos' hull: every preset that trims also builds
     that hull; the GPU keeps no masked hull occupied (worse on the realistic rock); the one-shot,
     paper and passive presets do not trim (not measured there)."""
-    for name in ("cpu-quick", "fewview"):
+    for name, hull in (("cpu-quick", "auto"), ("fewview", "dark")):
         c = load_config(name)
         assert c.loss.fg_halo == 0.7 and c.loss.fg_halo_frac == 0.7
-        assert c.occupancy.photo_hull == "auto"
+        assert c.occupancy.photo_hull == hull
     assert load_config("fewview").occupancy.hull_keep == "off"
     for name in ("paper", "oneshot", "passive"):
         assert load_config(name).loss.fg_halo == 0.0

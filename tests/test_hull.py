@@ -9,6 +9,7 @@ import trimesh
 
 from fastneus.config import load_config
 from fastneus.synth.render import synthesize
+from fastneus.train.rays import RayBank
 from fastneus.train.visibility import consistent_hull, hull_cells, hull_uncovered, seen_cells
 
 from conftest import SMALL_RUN
@@ -267,6 +268,12 @@ def test_a_dark_room_without_masks_gets_the_photos_hull(torus_scene, tmp_path, m
     assert "the photos' non-background pixels' visual hull" in tr.hull_note
     off = _trainer(s, tmp_path / "off", ["masks=off", "bg_prior=on", "photo_hull=off"])
     assert off.hull_out is None and "no masks, no hull" in off.hull_note
+    # photo_hull=dark (fewview): not where the object is bright beside the backdrop (a lit room)
+    for lit in (True, False):
+        with monkeypatch.context() as m:
+            m.setattr(RayBank, "lit_room", property(lambda self, lit=lit: lit))
+            d = _trainer(s, tmp_path / f"d{lit}", ["masks=off", "bg_prior=on", "photo_hull=dark"])
+        assert d.fg_used and (d.hull_out is None) == lit, d.hull_note
     # the photos' hull holds the object as the masks' does (sampled GT surface inside it)
     masked = _trainer(s, tmp_path / "m", [])
     r = tr.grid.resolution

@@ -491,7 +491,8 @@ class Trainer:
         mode = "loss" if c.hull == "auto" else c.hull
         # without masks, a dark room's photos are masks of their own: what the backdrop flags do not
         # claim (ant, Dark, no masks, CPU 600 steps, three seeds: ideal 8.05 -> 6.52 mm, realistic 13.01 -> 11.59)
-        photo = (c.photo_hull == "auto" and not self.masks_used and self.fg_used and isinstance(self.bank, RayBank))
+        photo = (c.photo_hull != "off" and not self.masks_used and self.fg_used and isinstance(self.bank, RayBank)
+                 and (c.photo_hull == "auto" or not self.bank.lit_room))
         if not self.masks_used and not photo:
             return "occupancy: no masks, no hull"
         if any(self.scene.frame_camera(i).port is not None for i in self.frames):
