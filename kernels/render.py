@@ -13,7 +13,7 @@ Per sample i of a ray with direction d (a = cos_anneal, s = inv_s, dt = t1 - t0)
     alpha_i  = clamp((sig(s prev) - sig(s next) + 1e-5) / (sig(s prev) + 1e-5), 0, 1 - 1e-4)
     T_i      = prod_{j<i} (1 - alpha_j),  w_i = T_i alpha_i
     Q(P)     = sum_k bilinear(pattern_k, K_k X / X.z - 0.5),  X = W_k [P, 1]  (0 if X.z <= 1e-6)
-    c_i      = D_i + (i_r D_i + i_b) * Q(P_i)
+    c_i      = D_i + (i_r D_i + i_b + e_i) * Q(P_i)    (e_i: optional per-sample highlight, else 0)
     color = sum w c, texture = sum w D, opacity = sum w, depth = sum w (t0 + t1) / 2
 
 The forward saves T_i per sample ([S] float32); the backward scans each ray in reverse,
@@ -246,6 +246,7 @@ def _render_fwd(
     inv_s: wp.array(dtype=float), cos_anneal: wp.array(dtype=float), i_r: wp.array(dtype=float),
     i_b: wp.array(dtype=float),
     write_weights: int, q_ext: wp.array(dtype=wp.vec3), use_qext: int,
+    spec: wp.array(dtype=float), use_spec: int,
     out_color: wp.array(dtype=wp.vec3), out_opacity: wp.array(dtype=float), out_depth: wp.array(dtype=float),
     out_texture: wp.array(dtype=wp.vec3), out_weights: wp.array(dtype=float), out_trans: wp.array(dtype=float),
 ):
@@ -275,7 +276,10 @@ def _render_fwd(
             q = q_ext[i]
         else:
             q = _pattern_sum(pos[i], f, P, K, W, proj_pattern, pat, meta)
-        c = D + wp.cw_mul(D * ir + wp.vec3(ib), q)
+        b = ib
+        if use_spec != 0:
+            b += spec[i]
+        c = D + wp.cw_mul(D * ir + wp.vec3(b), q)
         C += w * c
         tex += w * D
         op += w
@@ -301,6 +305,7 @@ def _render_bwd(
     i_b: wp.array(dtype=float),
     # the forward's per-sample transmittance and the upstream gradients
     trans: wp.array(dtype=float), q_ext: wp.array(dtype=wp.vec3), use_qext: int, need_qext: int,
+    spec: wp.array(dtype=float), use_spec: int, need_spec: int,
     g_color: wp.array(dtype=wp.vec3), g_opacity: wp.array(dtype=float), g_depth: wp.array(dtype=float),
     g_texture: wp.array(dtype=wp.vec3),
     # which input gradients to write (0/1)
@@ -310,6 +315,7 @@ def _render_bwd(
     d_sdf: wp.array(dtype=float), d_grad: wp.array(dtype=wp.vec3), d_col: wp.array(dtype=wp.vec3),
     d_pos: wp.array(dtype=wp.vec3), d_invs: wp.array(dtype=float), d_ir: wp.array(dtype=float),
     d_ib: wp.array(dtype=float), d_W: wp.array(dtype=float), d_qext: wp.array(dtype=wp.vec3),
+    d_spec: wp.array(dtype=float),
 ):
     r = wp.tid()
     start = offsets[r]
@@ -357,16 +363,19 @@ def _render_bwd(
         w = T * alpha
         D = col[i]
         p = pos[i]
+        b = ib  # the light's albedo-free part: i_b plus this sample's highlight
+        if use_spec != 0:
+            b += spec[i]
         gcw = w * gc  # dL/dc_i
         q = wp.vec3(0.0)
         if use_qext != 0:
             # Q given (project_pattern): its gradient goes back through q_ext, not pos / W here
             q = q_ext[i]
             if need_qext != 0:
-                d_qext[i] = wp.cw_mul(gcw, D * ir + wp.vec3(ib))
+                d_qext[i] = wp.cw_mul(gcw, D * ir + wp.vec3(b))
         elif need_proj > 0:
             # one pass over the projectors gives Q and, from the same texels, dL/dpos and dL/dW
-            gq = wp.cw_mul(gcw, D * ir + wp.vec3(ib))  # dL/dQ_k, the same for every projector
+            gq = wp.cw_mul(gcw, D * ir + wp.vec3(b))  # dL/dQ_k, the same for every projector
             gp = wp.vec3(0.0)
             for k in range(P):
                 pid = proj_pattern[f, k]
@@ -394,7 +403,7 @@ def _render_bwd(
                 d_pos[i] = gp
         else:
             q = _pattern_sum(p, f, P, K, W, proj_pattern, pat, meta)
-        c = D + wp.cw_mul(D * ir + wp.vec3(ib), q)
+        c = D + wp.cw_mul(D * ir + wp.vec3(b), q)
         v = wp.dot(gc, c) + go + gd * (a0 + a1) * 0.5 + wp.dot(gx, D)
         if need_alpha > 0:
             g_alpha = T * v - suf / (1.0 - alpha)
@@ -419,7 +428,10 @@ def _render_bwd(
         if need_col != 0:
             d_col[i] = wp.cw_mul(gcw, wp.vec3(1.0) + ir * q) + w * gx
         gir += wp.dot(gcw, wp.cw_mul(D, q))
-        gib += wp.dot(gcw, q)
+        gq1 = wp.dot(gcw, q)
+        gib += gq1
+        if need_spec != 0:
+            d_spec[i] = gq1
     # One atomic per ray (not per sample) for the shared parameters.
     if need_invs != 0:
         wp.atomic_add(d_invs, 0, gs)
@@ -464,7 +476,7 @@ def _param(x, ref: torch.Tensor) -> torch.Tensor:
 
 class _RenderPattern(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, sdf, grad, color, pos, inv_s, i_r, i_b, proj_W, q_ext,
+    def forward(ctx, sdf, grad, color, pos, inv_s, i_r, i_b, proj_W, q_ext, spec,
                 t0, t1, offsets, counts, dirs, ray_frame, proj_K, proj_pattern, pat_buf, pat_meta,
                 cos_anneal, return_weights):
         ref = sdf
@@ -489,7 +501,9 @@ class _RenderPattern(torch.autograd.Function):
         ]
         use_q = q_ext is not None
         q_arr = q_ext if use_q else torch.zeros((1, 3), dtype=torch.float32, device=ref.device)
-        inputs = common + [int(return_weights), _wp(q_arr, wp.vec3), int(use_q)]
+        use_e = spec is not None
+        e_arr = spec if use_e else torch.zeros((1,), dtype=torch.float32, device=ref.device)
+        inputs = common + [int(return_weights), _wp(q_arr, wp.vec3), int(use_q), _wp(e_arr), int(use_e)]
         per_ray_in = {6: (offsets, None), 7: (counts, None), 8: (dirs, wp.vec3), 9: (ray_frame, None)}
         outputs = [_wp(out_color, wp.vec3), _wp(out_opacity), _wp(out_depth), _wp(out_texture, wp.vec3),
                    _wp(weights), _wp(trans)]
@@ -499,19 +513,19 @@ class _RenderPattern(torch.autograd.Function):
         # A ray's thread writes only its own outputs and its own samples' weights and T.
         _warp.launch_chunked(_render_fwd, inputs, outputs, ref, _warp.ray_ranges(offsets, S, ref, MIN_CHUNK_SAMPLES),
                              sliced_in=per_ray_in, sliced_out=per_ray_out)
-        ctx.save_for_backward(sdf, grad, color, pos, inv_s, i_r, i_b, proj_W, q_arr, t0, t1, offsets, counts, dirs,
-                              ray_frame, proj_K, proj_pattern, pat_buf, pat_meta, trans, cos_anneal)
-        ctx.use_q = use_q
+        ctx.save_for_backward(sdf, grad, color, pos, inv_s, i_r, i_b, proj_W, q_arr, e_arr, t0, t1, offsets, counts,
+                              dirs, ray_frame, proj_K, proj_pattern, pat_buf, pat_meta, trans, cos_anneal)
+        ctx.use_q, ctx.use_e = use_q, use_e
         ctx.mark_non_differentiable(weights)
         return out_color, out_opacity, out_depth, out_texture, weights
 
     @staticmethod
     def backward(ctx, g_color, g_opacity, g_depth, g_texture, _g_weights):
-        (sdf, grad, color, pos, inv_s, i_r, i_b, proj_W, q_arr, t0, t1, offsets, counts, dirs, ray_frame, proj_K,
-         proj_pattern, pat_buf, pat_meta, trans, cos_anneal) = ctx.saved_tensors
-        needs = ctx.needs_input_grad[:9]
+        (sdf, grad, color, pos, inv_s, i_r, i_b, proj_W, q_arr, e_arr, t0, t1, offsets, counts, dirs, ray_frame,
+         proj_K, proj_pattern, pat_buf, pat_meta, trans, cos_anneal) = ctx.saved_tensors
+        needs = ctx.needs_input_grad[:10]
         if not any(needs):
-            return (None,) * 21
+            return (None,) * 22
         dev = sdf.device
 
         def buf(i, shape):
@@ -523,6 +537,7 @@ class _RenderPattern(torch.autograd.Function):
         d_invs, d_ir, d_ib = buf(4, (1,)), buf(5, (1,)), buf(6, (1,))
         d_W = torch.zeros(proj_W.shape if needs[7] else (1,), dtype=torch.float32, device=dev)
         d_q = torch.zeros(q_arr.shape if needs[8] else (1, 3), dtype=torch.float32, device=dev)
+        d_e = torch.zeros(e_arr.shape if needs[9] else (1,), dtype=torch.float32, device=dev)
         g_color, g_opacity, g_depth, g_texture = (_f32(g) for g in (g_color, g_opacity, g_depth, g_texture))
         inputs = [
             _wp(sdf), _wp(grad, wp.vec3), _wp(color, wp.vec3), _wp(pos, wp.vec3),
@@ -531,21 +546,21 @@ class _RenderPattern(torch.autograd.Function):
             _wp(proj_W, mat34), _wp(proj_pattern), _wp(pat_buf),
             _wp(pat_meta, wp.vec3i), _wp(inv_s), _wp(cos_anneal), _wp(i_r),
             _wp(i_b),
-            _wp(trans), _wp(q_arr, wp.vec3), int(ctx.use_q), int(needs[8]),
+            _wp(trans), _wp(q_arr, wp.vec3), int(ctx.use_q), int(needs[8]), _wp(e_arr), int(ctx.use_e), int(needs[9]),
             _wp(g_color, wp.vec3), _wp(g_opacity), _wp(g_depth), _wp(g_texture, wp.vec3),
             int(needs[0]), int(needs[1]), int(needs[2]), int(needs[3]), int(needs[4]), int(needs[5]),
             int(needs[6]), int(needs[7]),
         ]
         R = offsets.shape[0]
         per_ray_in = {6: (offsets, None), 7: (counts, None), 8: (dirs, wp.vec3), 9: (ray_frame, None),
-                      23: (g_color, wp.vec3), 24: (g_opacity, None), 25: (g_depth, None), 26: (g_texture, wp.vec3)}
+                      26: (g_color, wp.vec3), 27: (g_opacity, None), 28: (g_depth, None), 29: (g_texture, wp.vec3)}
         outputs = [_wp(d_sdf), _wp(d_grad, wp.vec3), _wp(d_col, wp.vec3), _wp(d_pos, wp.vec3), _wp(d_invs),
-                   _wp(d_ir), _wp(d_ib), _wp(d_W.view(-1)), _wp(d_q, wp.vec3)]
+                   _wp(d_ir), _wp(d_ib), _wp(d_W.view(-1)), _wp(d_q, wp.vec3), _wp(d_e)]
         # Per-sample gradients are written by their ray's thread only; the shared parameters
         # (inv_s, i_r, i_b, proj_W) take atomics from every ray.
         _warp.launch_chunked(_render_bwd, inputs, outputs, sdf, _warp.ray_ranges(offsets, S, sdf, MIN_CHUNK_SAMPLES),
                              sliced_in=per_ray_in, shared={4: d_invs, 5: d_ir, 6: d_ib, 7: d_W.view(-1)})
-        res = [d_sdf, d_grad, d_col, d_pos, d_invs, d_ir, d_ib, d_W, d_q]
+        res = [d_sdf, d_grad, d_col, d_pos, d_invs, d_ir, d_ib, d_W, d_q, d_e]
         res = [g if n else None for g, n in zip(res, needs)]
         return tuple(res) + (None,) * 12
 
@@ -592,6 +607,7 @@ def render_pattern(
     i_b: torch.Tensor,  # [1] float32
     return_weights: bool = False,
     q_ext: torch.Tensor | None = None,  # [S, 3] float32: Q(P) computed elsewhere (project_pattern)
+    spec: torch.Tensor | None = None,  # [S] float32: per-sample highlight e_i (added to i_b), >= 0
 ) -> dict:
     """NeuS rendering with pattern projection (Warp forward, hand-written Warp backward).
 
@@ -614,6 +630,8 @@ def render_pattern(
         return_weights: also return per-sample weights w_i (not differentiable).
         q_ext: when given, the projected light Q per sample is taken from it (differentiable)
             instead of being sampled from the patterns here; proj_W then gets no gradient.
+        spec: when given, each sample's highlight e_i: the light's albedo-free part becomes
+            i_b + e_i there (c_i = D_i + (i_r D_i + i_b + e_i) Q_i); differentiable.
 
     Returns:
         dict with color [R, 3], opacity [R], depth [R], texture [R, 3] (float32) and, if
@@ -626,6 +644,7 @@ def render_pattern(
     out = _RenderPattern.apply(
         _f32(sdf), _f32(grad), _f32(color), _f32(pos), _f32(_param(inv_s, sdf)), _f32(_param(i_r, sdf)),
         _f32(_param(i_b, sdf)), _f32(proj_W), None if q_ext is None else _f32(q_ext),
+        None if spec is None else _f32(spec).reshape(-1),
         _f32(t0), _f32(t1), _i32(offsets), _i32(counts), _f32(dirs), _i32(ray_frame), _f32(proj_K),
         _i32(proj_pattern), patterns.buffer.contiguous(), _i32(meta), cos_anneal, bool(return_weights))
     res = dict(color=out[0], opacity=out[1], depth=out[2], texture=out[3])
@@ -707,6 +726,7 @@ def render_pattern_torch(
     i_b: torch.Tensor,  # [1]
     return_weights: bool = False,
     q_ext: torch.Tensor | None = None,  # [S, 3]
+    spec: torch.Tensor | None = None,  # [S]
 ) -> dict:
     """Pure-torch twin of :func:`render_pattern` (same maths; differentiable by autograd).
 
@@ -740,7 +760,8 @@ def render_pattern_torch(
         q = q_ext.to(dtype)
     else:
         q = _pattern_sum_torch(pos, ray_frame.long()[ri], proj_K, proj_W, proj_pattern, patterns)
-    c = color + (i_r * color + i_b) * q
+    b = i_b if spec is None else i_b + spec.to(dtype).reshape(-1, 1)
+    c = color + (i_r * color + b) * q
     mid = (t0 + t1) * 0.5
 
     def seg(x):

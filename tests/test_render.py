@@ -371,3 +371,81 @@ def test_cos_anneal_as_device_tensor_is_the_float(device):
             assert same(x, y), (op.__name__, seed)
         for k in DIFF:
             assert same(res[0][1][k], res[1][1][k]), (op.__name__, k, seed)
+
+
+# ----------------------------------------------------------------------------------------
+# The per-sample highlight e_i (``spec``): c_i = D_i + (i_r D_i + i_b + e_i) Q_i
+# ----------------------------------------------------------------------------------------
+def _spec_inputs(R, F, P, n, seed, device, with_q):
+    inp = make_inputs(R, F, P, n, seed, device)
+    gen = torch.Generator().manual_seed(seed + 7)
+    S = inp["sdf"].shape[0]
+    inp["spec"] = (torch.rand(S, generator=gen) * 0.3).to(device)
+    if with_q:  # Q handed in (the project_pattern path): its gradient must carry e_i too
+        inp["q_ext"] = (torch.rand(S, 3, generator=gen) * 2).to(device)
+    return inp
+
+
+@pytest.mark.parametrize("device", DEVICES)
+@pytest.mark.parametrize("with_q", [False, True], ids=["own", "q_ext"])
+@pytest.mark.parametrize("size", [(64, 3, 4, 24), (257, 2, 3, 32), (1, 2, 3, 1)], ids=lambda s: "R{}F{}P{}n{}".format(*s))
+def test_spec_forward_backward_vs_twin(size, with_q, device):
+    seed = _seed()
+    names = DIFF + ("spec",) + (("q_ext",) if with_q else ())
+    inp = _spec_inputs(*size, seed, device, with_q)
+    w_in, t32, t64 = (_with_grad(inp, names), _with_grad(inp, names), _with_grad(inp, names, dtype=torch.float64))
+    out = render_pattern(**w_in)
+    ref32, ref64 = render_pattern_torch(**t32), render_pattern_torch(**t64)
+    for k in OUTS:
+        _close_to_ref(out[k], ref64[k], ref32[k], 1e-5, f"seed {seed}: forward {k}")
+    gen = torch.Generator().manual_seed(seed + 1)
+    ups = {k: torch.randn(out[k].shape, generator=gen).to(device) for k in OUTS}
+    g_w, g32, g64 = _grads(out, ups, w_in, names), _grads(ref32, ups, t32, names), _grads(ref64, ups, t64, names)
+    for name in names:
+        _close_to_ref(g_w[name], g64[name], g32[name], 1e-4, f"seed {seed}: grad {name}")
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_spec_is_a_per_sample_i_b(device):
+    """A constant highlight e is i_b + e: the same colour, and d/d e_i sums to d/d i_b; with
+    e = 0 the output is bit for bit the op without ``spec``; the texture never sees it."""
+    seed = _seed()
+    inp = make_inputs(64, 3, 4, 24, seed, device)
+    S = inp["sdf"].shape[0]
+    e = 0.17
+    spec = torch.full((S,), e, device=device, requires_grad=True)
+    i_b = inp["i_b"].clone().requires_grad_(True)
+    a = render_pattern(**dict(inp, i_b=i_b), spec=spec)
+    i_b2 = (inp["i_b"] + e).requires_grad_(True)
+    b = render_pattern(**dict(inp, i_b=i_b2))
+    _close(a["color"], b["color"], 1e-6, f"seed {seed}: constant spec vs i_b + e")
+    assert torch.equal(a["texture"], b["texture"])
+    up = torch.randn(a["color"].shape, generator=torch.Generator().manual_seed(seed)).to(device)
+    g_e, g_b = torch.autograd.grad((a["color"] * up).sum(), [spec, i_b])
+    (g_b2,) = torch.autograd.grad((b["color"] * up).sum(), [i_b2])
+    _close(g_e.sum().reshape(1), g_b, 1e-5, f"seed {seed}: sum of d/d e_i vs d/d i_b")
+    _close(g_b, g_b2, 1e-5, f"seed {seed}: d/d i_b with and without spec")
+    zero = render_pattern(**inp, spec=torch.zeros(S, device=device))
+    plain = render_pattern(**inp)
+    for k in OUTS:
+        assert torch.equal(zero[k], plain[k]), (k, seed)
+
+
+def test_gradcheck_twin_spec():
+    seed = _seed()
+    names = DIFF + ("spec", "q_ext")
+    for R, F, P, n in [(3, 2, 2, 3), (2, 1, 1, 4)]:
+        inp = make_inputs(R, F, P, n, seed, "cpu", px_margin=0.05, kink_margin=1e-3, alpha_margin=1e-5,
+                          dtype=torch.float64, zero_rays=False)
+        S = inp["sdf"].shape[0]
+        gen = torch.Generator().manual_seed(seed + 3)
+        inp["spec"] = torch.rand(S, generator=gen, dtype=torch.float64) * 0.3
+        inp["q_ext"] = torch.rand(S, 3, generator=gen, dtype=torch.float64)
+        t_in = _with_grad(inp, names)
+        consts = {k: v for k, v in t_in.items() if k not in names}
+
+        def fn(*xs):
+            out = render_pattern_torch(**consts, **dict(zip(names, xs)))
+            return tuple(out[k] for k in OUTS)
+
+        assert torch.autograd.gradcheck(fn, tuple(t_in[k] for k in names), eps=1e-6, atol=1e-5, rtol=1e-4), seed
