@@ -151,7 +151,7 @@ def _in_place(e, smp, gen):
 
 
 @pytest.mark.parametrize("extra", [[], ["curvature_weight=0.001"], ["hull=loss", "init_radius=0.95"], "in-place",
-                                   ["mask_loss=mixed"], "in-place mask_loss=sdf"])
+                                   ["mask_loss=mixed"], "in-place mask_loss=sdf", "in-place network.highlight=true"])
 def test_padded_device_schedule_step_matches_the_eager_step(small_scene, tmp_path, extra):
     """The padded step against the eager one; ``in-place``: the samples written into the
     entry's buffers with earlier steps' samples left in the padding (not copied, not zeroed)."""
@@ -238,7 +238,7 @@ def test_shared_inputs_are_fixed_per_layout_and_not_copied_again():
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="CUDA graphs need a CUDA device")
 @pytest.mark.parametrize("extra", [[], ["hull=bound"], ["mask_start=on", "mask_weight_start=0.8", "mask_start_frac=0.3"],
                                    ["mask_loss=mixed"], "train-step path", ["masks=off", "bg_prior=on"],
-                                   "surface prior"])
+                                   "surface prior", ["network.highlight=true"]])
 def test_cuda_replayed_graph_matches_the_eager_step(tmp_path, extra):
     """Graph steps (first: eager on the side stream + capture; then replays) against eager
     steps on the same inputs: the same loss and parameters after every step. The scene is

@@ -14,12 +14,14 @@ import math
 
 import torch
 import torch.nn as nn
+import torch.nn.functional as F
 
 from fastneus.field.sdf_mlp import fusable, mlp_and_input_grad, mlp_forward
 from fastneus.kernels import get_op
 from fastneus.kernels.hashgrid import HashGridConfig, init_table
 
 # tetrahedron taps: grad f ~= sum_i v_i f(x + eps v_i) / (4 eps)
+HIGHLIGHT_BIAS = -6.0  # the highlight output's starting bias: softplus(-6) = 0.0025, no glint yet
 _TETRA = torch.tensor([[1.0, -1.0, -1.0], [-1.0, -1.0, 1.0], [-1.0, 1.0, -1.0], [1.0, 1.0, 1.0]])
 
 
@@ -62,15 +64,20 @@ class SDFField(nn.Module):
         # double backward, the reference the tests compare it with
         self.fused_mlp = fusable(self.sdf_net)
 
-        # colour MLP: [x, normal, (view dir), geo features] -> D (sigmoid)
+        # colour MLP: [x, normal, (view dir), geo features] -> D (sigmoid) and, with
+        # network.highlight, a fourth output: the projected light's highlight e (softplus)
         c_in = 3 + 3 + (3 if network.view_dependent else 0) + network.geo_features
-        cdims = [c_in] + [network.color_hidden] * network.color_layers + [3]
+        self.highlight = bool(network.highlight)
+        cdims = [c_in] + [network.color_hidden] * network.color_layers + [4 if self.highlight else 3]
         clayers: list[nn.Module] = []
         for i in range(len(cdims) - 1):
             clayers.append(nn.Linear(cdims[i], cdims[i + 1]))
             if i < len(cdims) - 2:
                 clayers.append(nn.ReLU(inplace=True))
         self.color_net = nn.Sequential(*clayers).to(device)
+        if self.highlight:  # no highlight at the start: softplus(-6) = 0.0025
+            with torch.no_grad():
+                self.color_net[-1].bias[3] = HIGHLIGHT_BIAS
 
         # NeuS variance: inv_s = exp(10 v)
         self.variance = nn.Parameter(torch.tensor([network.variance_init], device=device))
@@ -263,9 +270,27 @@ class SDFField(nn.Module):
         Returns:
             [N, 3] in (0, 1).
         """
+        return self.shade(x, normal, dirs, geo)[0]
+
+    def shade(self, x: torch.Tensor, normal: torch.Tensor, dirs: torch.Tensor,
+              geo: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """Colour D and the projected light's highlight e (``network.highlight``) from one MLP pass.
+
+        e is the non-Lambertian share of the pattern's light at a sample, added to i_b there
+        (``c = D + (i_r D + i_b + e) Q``): a shiny surface's glint of the projector, seen from
+        this view direction. It is >= 0, so it can brighten where the pattern falls but never move
+        or remove a line.
+
+        Args: as :meth:`color`.
+        Returns:
+            (D [N, 3] in (0, 1), e [N] >= 0 or None without ``network.highlight``).
+        """
         n = normal / normal.norm(dim=-1, keepdim=True).clamp_min(1e-6)
         parts = [x, n] + ([dirs] if self.network.view_dependent else []) + [geo]
-        return torch.sigmoid(mlp_forward(self.color_net, torch.cat(parts, dim=-1)))
+        out = mlp_forward(self.color_net, torch.cat(parts, dim=-1))
+        if not self.highlight:
+            return torch.sigmoid(out), None
+        return torch.sigmoid(out[:, :3]), F.softplus(out[:, 3])
 
     def inv_s(self) -> torch.Tensor:
         """[1] NeuS sharpness exp(10 v), at least the scheduled floor, at most 1e6."""
@@ -281,7 +306,7 @@ class SDFField(nn.Module):
         """
         m = torch.as_tensor(mean_rgb, dtype=torch.float32).clamp(0.02, 0.98)
         with torch.no_grad():
-            self.color_net[-1].bias.copy_(torch.log(m / (1 - m)).to(self.color_net[-1].bias.device))
+            self.color_net[-1].bias[:3].copy_(torch.log(m / (1 - m)).to(self.color_net[-1].bias.device))
 
     def without_coarse_to_fine(self) -> None:
         """All hash levels from now on (a fitted initial surface set the fine levels already)."""

@@ -175,7 +175,8 @@ def shade_samples(field, smp: dict, proj, origins: torch.Tensor, dirs: torch.Ten
     # canonical_view: every sample's colour as seen along its own normal, the same for every photo
     # (a view-dependent colour network can otherwise stand in for a photo's exposure gain)
     d_col = -torch.nn.functional.normalize(grad, dim=-1) if canonical_view else d_s
-    color = field.color(pos, grad, d_col, geo)
+    shade = getattr(field, "shade", None)  # D and the highlight e ([S] or None: network.highlight off)
+    color, spec = shade(pos, grad, d_col, geo) if shade is not None else (field.color(pos, grad, d_col, geo), None)
     pattern_on = cfg.illum.use_pattern if use_pattern is None else use_pattern
     pat = proj.pattern if pattern_on else torch.full_like(proj.pattern, -1)
     blur, lights = getattr(proj, "blur", None), getattr(proj, "lights", None) or {}
@@ -210,9 +211,12 @@ def shade_samples(field, smp: dict, proj, origins: torch.Tensor, dirs: torch.Ten
         q = light(f)
         out = render(sdf, grad, color, pos, t0, t1, ray_index, offsets, counts, dirs, f,
                      proj.K, proj.W, pat, proj.store, field.inv_s(), cos_anneal, i_r, i_b,
-                     return_weights=(with_normals or lit) and k == 0, q_ext=q)
+                     return_weights=(with_normals or lit or spec is not None) and k == 0, q_ext=q,
+                     **({} if spec is None else {"spec": spec}))
         if k == 0:
             res = dict(out)
+            if spec is not None:  # [R] each ray's rendered highlight (the weights held: a penalty on e alone)
+                res["highlight"] = torch.zeros(n, device=device).index_add_(0, ri, out["weights"].detach() * spec)
             if lit:  # how brightly the projectors light where this ray's surface is (no gradient)
                 with torch.no_grad():
                     q = light(f, force=True) if q is None else q.detach()

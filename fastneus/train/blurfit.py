@@ -91,8 +91,11 @@ class _FieldOnce:
         return self._geo
 
     def color(self, *args):
+        return self.shade(*args)[0]
+
+    def shade(self, *args):
         if self._col is None:
-            self._col = self._field.color(*args)
+            self._col = self._field.shade(*args)
         return self._col
 
     def __getattr__(self, name):

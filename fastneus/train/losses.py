@@ -9,7 +9,7 @@ from __future__ import annotations
 import torch
 
 # the order terms are summed in (fixed, so a run is reproducible bit for bit)
-TERMS = ("rgb", "eikonal", "mask", "background", "foreground", "prior", "curvature", "hull")
+TERMS = ("rgb", "eikonal", "mask", "background", "foreground", "prior", "curvature", "hull", "highlight")
 
 
 def penalty(err: torch.Tensor, robust: str = "l1", eps: float = 0.01) -> torch.Tensor:
@@ -207,6 +207,19 @@ def curvature(curv: torch.Tensor, weight: float, valid: torch.Tensor | None = No
         valid: [N] 0/1, the samples that count (padded buffers); None: all.
     """
     return {"curvature": weight * _mean(curv.abs(), valid)}
+
+
+def highlight(rendered: torch.Tensor, weight: float) -> dict[str, torch.Tensor]:
+    """L1 on the rendered highlight (``network.highlight``): what every lit pixel shares is i_b's
+    (one scalar, free), so the highlight is left only where the photos are brighter than that.
+
+    Args:
+        rendered: [B] each ray's sum of w_i e_i (the weights held); weight: ``loss.highlight_weight``.
+    Returns:
+        {"highlight": weight * mean, "spec": the unweighted mean (for the log, not summed)}.
+    """
+    r = rendered.mean()
+    return {"highlight": weight * r, "spec": r.detach()}
 
 
 def total(terms: dict[str, torch.Tensor]) -> torch.Tensor:

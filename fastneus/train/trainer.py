@@ -926,6 +926,8 @@ class Trainer:
             ijk = ((xr + 1.0) * (r / 2.0)).long().clamp(0, r - 1)
             out_hull = self.hull_out[ijk[:, 0] + ijk[:, 1] * r + ijk[:, 2] * (r * r)]
             terms["hull"] = c.occupancy.hull_weight * (out_hull * torch.relu(-out["sdf_extra"])).mean()
+        if "highlight" in out and c.loss.highlight_weight > 0:
+            terms |= losses.highlight(out["highlight"], c.loss.highlight_weight)
         if c.loss.curvature_weight > 0 and out["curv"] is not None:
             cv = None if valid is None else valid[: out["curv"].shape[0]]
             terms |= losses.curvature(out["curv"], c.loss.curvature_weight, valid=cv)
