@@ -197,7 +197,9 @@ class NetworkSection:
     view_dependent: bool = knob(True, "the colour MLP sees the view direction", model=True)
     highlight: bool = knob(False, "the colour MLP also learns the projected light's highlight e >= 0 at each "
                            "sample (c = D + (i_r D + i_b + e) Q): a shiny surface's glint of the lasers, which "
-                           "otherwise inflates i_r (loss.highlight_weight keeps it where the photos need it)",
+                           "otherwise inflates i_r (loss.highlight_weight keeps it where the photos need it). Off: on the "
+                           "realistic ant (H200, 10 s, masks) it brought i_r to the target but took i_b off it; a dark "
+                           "room's i_r stays as it is (docs/benchmarks/illum-realistic-gpu.md)",
                            model=True)
     init_radius: float = knob(0.5, "radius of the initial SDF sphere (normalised units)", lo=0.0, hi=1.0, lo_open=True)
     variance_init: float = knob(0.3, "initial NeuS sharpness: inv_s = exp(10 v), inside its clamp [1e-3, 1e6]",
