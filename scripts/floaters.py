@@ -1,0 +1,126 @@
+"""Where a run's surplus surface is (rec->GT error): its pieces far from the ground truth, located.
+
+    python scripts/floaters.py SCENE RUN [--tau-mm T] [--json OUT.json]
+
+The run's ``mesh.ply`` (world units) is compared with the scene's ground-truth mesh. Faces whose
+centre lies farther than ``tau`` from the GT surface (default: 0.25 % of the GT's bounding-box
+diagonal, 5.4 mm on synth's ~2 m objects: a quarter of the F-score's threshold, which a floater a
+few mm off the surface never crosses) are grouped into edge-connected pieces; each piece is printed with its
+area, its share of the mesh's area-weighted rec->GT error, its centroid, its mean / largest
+distance, and how many of the photos' masks cover its centroid (all of them: the piece sits inside
+the masks' visual hull, where only the photos' colours can remove it; fewer: a mask says empty
+space there, so the mask term failed to carve it). Also: whether the piece is attached to the
+main surface (shares an edge with a near face) or floats on its own.
+
+Written for issue 23's masked realistic ant, whose GPU runs show rec->GT 4.2-6.3 mm against GT->rec
+~3.2 mm (docs/benchmarks/quality-matrix-gpu-capture-axis.md).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+
+def mask_cover(scene, point: np.ndarray) -> tuple[int, int]:
+    """(masks whose pixel at ``point`` is set, frames with a mask that see ``point``)."""
+    covered = seen = 0
+    for i in range(len(scene.frames)):
+        m = scene.mask(i)
+        if m is None:
+            continue
+        cam = scene.frame_camera(i)
+        w2c = np.linalg.inv(scene.cam_to_world(i))
+        xc = w2c[:3, :3] @ point + w2c[:3, 3]
+        if xc[2] <= 0:
+            continue
+        u, v, _ = cam.K @ (xc / xc[2])
+        c, r = int(np.floor(u)), int(np.floor(v))
+        if not (0 <= r < m.shape[0] and 0 <= c < m.shape[1]):
+            continue
+        seen += 1
+        covered += int(m[r, c] > 0.5)
+    return covered, seen
+
+
+def pieces(scene_dir: Path, run: Path, tau_mm: float | None = None) -> dict:
+    """The far pieces of ``run``'s mesh against ``scene_dir``'s GT mesh (see the module docstring)."""
+    import trimesh
+    from scipy.spatial import cKDTree
+
+    from fastneus.data import Scene
+    from fastneus.eval.metrics import sample_surface
+
+    scene = Scene.load(scene_dir)
+    if not scene.gt_mesh:
+        raise SystemExit(f"{scene_dir}: the scene has no ground-truth mesh (scene.json gt.mesh)")
+    gt = trimesh.load(scene.path(scene.gt_mesh), force="mesh", process=False)
+    rec = trimesh.load(run / "mesh.ply", force="mesh", process=False)
+    diag = float(np.linalg.norm(gt.bounds[1] - gt.bounds[0]))
+    tau = (tau_mm / 1000.0) if tau_mm is not None else 0.0025 * diag
+    # dense enough that a sample lies within ~tau / 4 of every GT point (the distances are to samples)
+    n = int(np.clip(16.0 * gt.area / tau ** 2, 400_000, 4_000_000))
+    tree = cKDTree(sample_surface(gt, n, seed=0))
+    centres = rec.triangles_center
+    dist = tree.query(centres, k=1, workers=-1)[0]
+    area = rec.area_faces
+    far = dist > tau
+    total_err = float((area * dist).sum())
+    # edge-connected components of the far faces
+    adj = rec.face_adjacency
+    keep = far[adj[:, 0]] & far[adj[:, 1]]
+    labels = trimesh.graph.connected_component_labels(adj[keep], node_count=len(rec.faces))
+    near_nb = np.zeros(len(rec.faces), bool)  # far faces that share an edge with a near face
+    mixed = far[adj[:, 0]] != far[adj[:, 1]]
+    near_nb[adj[mixed].ravel()] = True
+    out = []
+    for lab in np.unique(labels[far]):
+        sel = far & (labels == lab)
+        a = float(area[sel].sum())
+        c = (centres[sel] * area[sel, None]).sum(0) / max(a, 1e-18)
+        cov, seen = mask_cover(scene, c)
+        out.append({
+            "faces": int(sel.sum()), "area_cm2": a * 1e4,
+            "error_share": float((area[sel] * dist[sel]).sum()) / max(total_err, 1e-18),
+            "centroid_m": [round(float(x), 4) for x in c],
+            "mean_mm": float(dist[sel].mean() * 1000), "max_mm": float(dist[sel].max() * 1000),
+            "attached": bool(near_nb[sel].any()), "masks_covering": cov, "masks_seeing": seen,
+        })
+    out.sort(key=lambda p: -p["error_share"])
+    rec2gt = float((area * dist).sum() / max(area.sum(), 1e-18) * 1000)
+    return {"run": str(run), "scene": str(scene_dir), "tau_mm": tau * 1000, "rec2gt_area_weighted_mm": rec2gt,
+            "far_area_share": float(area[far].sum() / max(area.sum(), 1e-18)),
+            "far_error_share": float((area[far] * dist[far]).sum() / max(total_err, 1e-18)), "pieces": out}
+
+
+def main(argv: list[str] | None = None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("scene", type=Path)
+    ap.add_argument("run", type=Path)
+    ap.add_argument("--tau-mm", type=float, default=None, help="distance that makes a face far (default: 0.25 %% of the GT diagonal)")
+    ap.add_argument("--top", type=int, default=10, help="pieces printed")
+    ap.add_argument("--json", type=Path, default=None)
+    a = ap.parse_args(argv)
+    res = pieces(a.scene, a.run, a.tau_mm)
+    from benchutil import command_line, provenance
+
+    res["provenance"] = provenance("cpu", command_line("scripts/floaters.py", argv))
+    print(f"{a.run}: rec->GT (area-weighted) {res['rec2gt_area_weighted_mm']:.2f} mm; faces beyond "
+          f"{res['tau_mm']:.1f} mm: {100 * res['far_area_share']:.1f} % of the area, "
+          f"{100 * res['far_error_share']:.1f} % of the error, in {len(res['pieces'])} pieces")
+    print("| share of error | area cm^2 | mean / max mm | centroid (m) | attached | masks covering / seeing |")
+    print("|---|---|---|---|---|---|")
+    for p in res["pieces"][:a.top]:
+        print(f"| {100 * p['error_share']:.1f} % | {p['area_cm2']:.1f} | {p['mean_mm']:.1f} / {p['max_mm']:.1f} | "
+              f"{p['centroid_m']} | {'yes' if p['attached'] else 'no'} | {p['masks_covering']} / {p['masks_seeing']} |")
+    if a.json:
+        a.json.write_text(json.dumps(res, indent=1))
+
+
+if __name__ == "__main__":
+    main()
