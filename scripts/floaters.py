@@ -27,19 +27,25 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 
-def mask_cover(scene, point: np.ndarray) -> tuple[int, int]:
-    """(masks whose pixel at ``point`` is set, frames with a mask that see ``point``)."""
-    covered = seen = 0
+def load_masks(scene) -> list:
+    """[(mask [H, W], K [3, 3], world->camera [4, 4])] of every frame with a mask, read once."""
+    out = []
     for i in range(len(scene.frames)):
         m = scene.mask(i)
-        if m is None:
-            continue
-        cam = scene.frame_camera(i)
-        w2c = np.linalg.inv(scene.cam_to_world(i))
+        if m is not None:
+            out.append((m, scene.frame_camera(i).K, np.linalg.inv(scene.cam_to_world(i))))
+    return out
+
+
+def mask_cover(masks: list, point: np.ndarray) -> tuple[int, int]:
+    """(masks whose pixel at ``point`` is set, frames with a mask that see ``point``); ``masks`` from
+    :func:`load_masks`."""
+    covered = seen = 0
+    for m, K, w2c in masks:
         xc = w2c[:3, :3] @ point + w2c[:3, 3]
         if xc[2] <= 0:
             continue
-        u, v, _ = cam.K @ (xc / xc[2])
+        u, v, _ = K @ (xc / xc[2])
         c, r = int(np.floor(u)), int(np.floor(v))
         if not (0 <= r < m.shape[0] and 0 <= c < m.shape[1]):
             continue
@@ -78,12 +84,13 @@ def pieces(scene_dir: Path, run: Path, tau_mm: float | None = None) -> dict:
     near_nb = np.zeros(len(rec.faces), bool)  # far faces that share an edge with a near face
     mixed = far[adj[:, 0]] != far[adj[:, 1]]
     near_nb[adj[mixed].ravel()] = True
+    masks = load_masks(scene)
     out = []
     for lab in np.unique(labels[far]):
         sel = far & (labels == lab)
         a = float(area[sel].sum())
         c = (centres[sel] * area[sel, None]).sum(0) / max(a, 1e-18)
-        cov, seen = mask_cover(scene, c)
+        cov, seen = mask_cover(masks, c)
         out.append({
             "faces": int(sel.sum()), "area_cm2": a * 1e4,
             "error_share": float((area[sel] * dist[sel]).sum()) / max(total_err, 1e-18),
