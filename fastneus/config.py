@@ -243,6 +243,9 @@ class LossSection:
                           "thin-legged realistic ant 2.70-2.92 -> 2.99-3.02; the CPU preset keeps bce, with which its "
                           "128-px realistic ant keeps its legs)",
                           choices=("bce", "sdf", "mixed"))
+    mask_core_px: int = knob(0, "with mask_loss sdf or mixed: mask pixels this many px inside the outline are "
+                             "held by the BCE on the opacity (a ray through the body's middle must be opaque), the "
+                             "rim by the SDF (0 = every mask pixel by the SDF)", lo=0, hi=16)
     mask_start: str = knob("auto", "a stronger mask weight early in the run (mask_weight_start, falling to "
                            "mask_weight at mask_start_frac): thin parts a blurred photo barely shows are held by the "
                            "masks while the shape forms, the photos have the last word. auto: with masks in a lit "

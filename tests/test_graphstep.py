@@ -151,7 +151,8 @@ def _in_place(e, smp, gen):
 
 
 @pytest.mark.parametrize("extra", [[], ["curvature_weight=0.001"], ["hull=loss", "init_radius=0.95"], "in-place",
-                                   ["mask_loss=mixed"], "in-place mask_loss=sdf", "in-place network.highlight=true"])
+                                   ["mask_loss=mixed"], "in-place mask_loss=sdf", "in-place network.highlight=true",
+                                   ["mask_loss=mixed", "mask_core_px=1"]])
 def test_padded_device_schedule_step_matches_the_eager_step(small_scene, tmp_path, extra):
     """The padded step against the eager one; ``in-place``: the samples written into the
     entry's buffers with earlier steps' samples left in the padding (not copied, not zeroed)."""

@@ -3,6 +3,8 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
+
 import pytest
 import torch
 
@@ -128,6 +130,43 @@ def test_mask_silhouette_pulls_only_rays_on_the_wrong_side():
     assert op.grad[2] > 0 and op.grad[3] > 0 and op.grad[0] == 0 and op.grad[1] == 0
 
 
+def test_mask_silhouette_core_pixels_are_held_by_opacity():
+    """With a core flag: a core mask pixel costs -log(opacity) and never the hinge (even with a
+    positive minimum SDF); a rim mask pixel keeps the hinge; background pixels are unchanged."""
+    m = torch.tensor([0.3, 0.2, 0.3, -0.4], requires_grad=True)
+    has = torch.ones(4)
+    mask = torch.tensor([1.0, 1.0, 0.0, 0.0])
+    core = torch.tensor([1.0, 0.0, 0.0, 0.0])
+    op = torch.tensor([0.25, 0.1, 0.2, 0.5], requires_grad=True)
+    s = torch.tensor(10.0)
+    t = losses.mask_silhouette(m, has, op, mask, 0.5, s, "mixed", core)["mask"]
+    want = 0.5 * (10.0 * 0.2 / 4 - (math.log(1 - 0.2) + math.log(1 - 0.5)) / 4 - math.log(0.25) / 4)
+    assert t.item() == pytest.approx(want)
+    t.backward()
+    assert m.grad.tolist() == pytest.approx([0.0, 0.5 * 10.0 / 4, 0.0, 0.0])
+    assert op.grad[0].item() == pytest.approx(-0.5 / (4 * 0.25)) and op.grad[1] == 0
+    # no core pixel: the same as without the flag
+    a = losses.mask_silhouette(m, has, op, mask, 0.5, s, "sdf", torch.zeros(4))["mask"]
+    b = losses.mask_silhouette(m, has, op, mask, 0.5, s, "sdf")["mask"]
+    assert a.item() == pytest.approx(b.item())
+
+
+def test_mask_core_erodes_each_frame_on_its_own():
+    """The core is the mask eroded by px (a square), per frame, the image border not eroding."""
+    from fastneus.train.rays import mask_core
+
+    a = np.zeros((6, 8), np.uint8)
+    a[1:6, 2:7] = 255                      # a 5 x 5 block touching the bottom border
+    b = np.full((4, 5), 255, np.uint8)     # a frame all mask
+    flat = torch.from_numpy(np.concatenate([a.reshape(-1), b.reshape(-1)]))
+    core = mask_core(flat, torch.tensor([[8, 6], [5, 4]]), 1)
+    ca, cb = core[:48].view(6, 8).numpy(), core[48:].view(4, 5).numpy()
+    want = np.zeros((6, 8), bool)
+    want[2:6, 3:6] = True                  # eroded on three sides, not at the border
+    assert (ca == want).all() and cb.all()
+    assert not mask_core(flat, torch.tensor([[8, 6], [5, 4]]), 3)[:48].any()
+
+
 def test_background_only_pushes_background_pixels():
     op = torch.tensor([0.5, 0.5], requires_grad=True)
     t = losses.background_free_space(op, torch.tensor([1.0, 0.0]), 0.1)
@@ -230,7 +269,8 @@ def test_mask_start_is_chosen_in_a_lit_room_printed_and_saved(tmp_path, lit_and_
 
 
 @pytest.mark.parametrize("extra, note", [([], None), (["mask_loss=mixed"], "(mask_loss=mixed, background pixels by opacity)"),
-                                         (["mask_loss=sdf"], "negative SDF (mask_loss=sdf)")])
+                                         (["mask_loss=sdf"], "negative SDF (mask_loss=sdf)"),
+                                         (["mask_loss=mixed", "mask_core_px=2"], "2 px inside the outline by opacity")])
 def test_the_mask_terms_form_is_in_the_masks_note(tmp_path, lit_and_dark, extra, note):
     """A silhouette form of the mask term is printed and saved with the masks' decision."""
     from fastneus.config import load_config
@@ -242,6 +282,11 @@ def test_the_mask_terms_form_is_in_the_masks_note(tmp_path, lit_and_dark, extra,
     assert tr.masks_used
     assert ("negative SDF" in tr.masks_note) is (note is not None)
     assert note is None or note in tr.masks_note
+    core = tr.bank.mask_core  # flagged only for a silhouette form with a core radius
+    assert (core is not None) is ("mask_core_px=2" in extra)
+    if core is not None:
+        inside = tr.bank.mask > 127
+        assert bool(core.any()) and not bool((core & ~inside).any()) and int(core.sum()) < int(inside.sum())
 
 
 def test_pixel_min_sdf_takes_the_smallest_of_a_pixels_rays():

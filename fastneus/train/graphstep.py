@@ -56,7 +56,7 @@ CAP_MARGIN = 1.04
 MIN_FREE = 0.35  # ... and while less than this share of the GPU's memory is free (_make_room)
 # what a ray draw reads of the bank: a recorded draw graph reads these tensors where it was recorded,
 # so one that is replaced (the halo's weights at 30 % of a run, new background flags) retires it
-DRAW_FIELDS = ("rgb", "lut", "mask", "bg", "bg_soft", "fg", "cdf", "offset", "wh", "kinv", "rot", "origin", "port")
+DRAW_FIELDS = ("rgb", "lut", "mask", "mask_core", "bg", "bg_soft", "fg", "cdf", "offset", "wh", "kinv", "rot", "origin", "port")
 
 
 def ray_bucket(n: int) -> int:

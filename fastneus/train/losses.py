@@ -115,7 +115,8 @@ def mask_bce(opacity: torch.Tensor, mask: torch.Tensor, weight: float | torch.Te
 
 
 def mask_silhouette(min_sdf: torch.Tensor, has: torch.Tensor, opacity: torch.Tensor, mask: torch.Tensor,
-                    weight: float | torch.Tensor, inv_s: torch.Tensor, kind: str) -> dict[str, torch.Tensor]:
+                    weight: float | torch.Tensor, inv_s: torch.Tensor, kind: str,
+                    core: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
     """The mask as a statement about where rays cross the surface, not about their opacity.
 
     A mask pixel's ray must enter the object somewhere (its smallest SDF along the ray is
@@ -131,14 +132,20 @@ def mask_silhouette(min_sdf: torch.Tensor, has: torch.Tensor, opacity: torch.Ten
         has: [B] 1 where the ray has samples; opacity: [B]; mask: [B] in {0, 1};
         weight: the scheduled mask weight; inv_s: NeuS's sharpness (0-d);
         kind: ``sdf`` (both sides by the SDF) or ``mixed`` (mask pixels by the SDF, background
-            pixels by the BCE on the opacity: nothing semi-transparent outside the silhouette).
+            pixels by the BCE on the opacity: nothing semi-transparent outside the silhouette);
+        core: [B] in {0, 1}, or None: mask pixels well inside the outline (``loss.mask_core_px``),
+            held by the BCE on the opacity instead (a ray through the middle of the body must be
+            opaque: the hinge alone let the GPU preset open a pocket inside the realistic ant).
     """
     s = inv_s.detach().reshape(())
-    inside = mask * torch.relu(min_sdf) * has
+    rim = mask if core is None else mask * (1.0 - core)
+    inside = rim * torch.relu(min_sdf) * has
     if kind == "sdf":
         r = (inside + (1.0 - mask) * torch.relu(-min_sdf) * has).mean() * s
     else:  # the background pixels as the no-mask background prior pushes them
         r = inside.mean() * s + background_free_space(opacity, 1.0 - mask, 1.0)["background"]
+    if core is not None:
+        r = r + foreground_opacity(opacity, mask * core, 1.0)["foreground"]
     return {"mask": weight * r}
 
 

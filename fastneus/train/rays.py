@@ -525,6 +525,7 @@ class RayBank:
             self.bg_fraction = float(self.bg.float().mean())
         self.fg = None
         self.bg_soft = None  # [sum HW] uint8 background weight x 255 with the halo (set_halo), or None
+        self.mask_core = None  # [sum HW] bool, the masks' core (set_mask_core), or None
         self._fg_load = None  # the foreground flags as read at load while set_fg_halo has trimmed self.fg
         self.fg_halo_share = 0.0  # the share set_fg_halo trimmed self.fg with (0: the flags as loaded)
         self._room = (bg_cap, sizes)  # for lit_room, decided only when asked
@@ -559,6 +560,11 @@ class RayBank:
             return background_codes(self.lut, background, tol)[self.rgb.long()].all(dim=1)
         diff = (self.rgb.to(torch.int16) - int(round(255 * background))).abs().amax(dim=1)
         return diff <= int(round(255 * tol))
+
+    def set_mask_core(self, px: int) -> None:
+        """Flag the mask pixels at least ``px`` pixels inside their silhouette (``self.mask_core``,
+        [sum HW] bool; None with ``px`` 0 or no masks): :func:`mask_core`."""
+        self.mask_core = mask_core(self.mask, self.wh, px) if px > 0 and self.mask is not None else None
 
     def set_halo(self, radius: int, share: float) -> None:
         """Weigh the lens's halo into the background flags (:func:`halo_weights`; batches then carry
@@ -700,6 +706,27 @@ def to_linear(u8: torch.Tensor, lut: torch.Tensor | None) -> torch.Tensor:
     return u8.float() / 255.0 if lut is None else lut[u8.long()]
 
 
+def mask_core(mask: torch.Tensor, wh: torch.Tensor, px: int) -> torch.Tensor:
+    """The mask's core: mask pixels whose (2 px + 1)-square neighbourhood is all mask (an erosion;
+    the image border does not erode). A ray through the core crosses the object well inside its
+    outline, where full opacity is what the photo says; a ray on the rim may only graze it.
+
+    Args:
+        mask: [sum HW] uint8 masks of the frames, concatenated (x 255); wh: [F, 2] (width, height);
+        px: the erosion radius in pixels (>= 1).
+    Returns:
+        [sum HW] bool on the masks' device.
+    """
+    inside = (mask > 127).float()
+    out, off = [], 0
+    for w, h in wh.tolist():
+        m = inside[off:off + w * h].view(1, 1, h, w)
+        # a min-filter as a max-filter of the negation (max_pool2d ignores its padding)
+        out.append((-torch.nn.functional.max_pool2d(-m, 2 * px + 1, stride=1, padding=px)).reshape(-1) > 0.5)
+        off += w * h
+    return torch.cat(out)
+
+
 def pixel_fields(bank, flat: torch.Tensor, u8: torch.Tensor) -> dict:
     """What a batch carries per drawn pixel: its photo values (linear through ``bank.lut``), the
     saturated channels, the flat index, and the mask and background flag when the bank has them.
@@ -711,6 +738,9 @@ def pixel_fields(bank, flat: torch.Tensor, u8: torch.Tensor) -> dict:
     out = {"rgb": to_linear(u8, bank.lut), "sat": u8 >= SATURATED, "pix": flat}
     if bank.mask is not None:
         out["mask"] = bank.mask[flat].float() / 255.0
+        core = getattr(bank, "mask_core", None)  # RayBank.set_mask_core
+        if core is not None:
+            out["core"] = core[flat].float()
     soft = getattr(bank, "bg_soft", None)  # the lens's halo weighted in (RayBank.set_halo)
     if soft is not None:
         out["bg"] = soft[flat].float() / 255.0

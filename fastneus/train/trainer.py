@@ -235,6 +235,9 @@ class Trainer:
         if self.masks_used and cfg.loss.mask_loss != "bce":  # the mask term's form (the GPU preset: mixed)
             self.masks_note += (f"; mask pixels' rays must reach a negative SDF (mask_loss={cfg.loss.mask_loss}"
                                 f"{'' if cfg.loss.mask_loss == 'sdf' else ', background pixels by opacity'})")
+            if cfg.loss.mask_core_px > 0 and hasattr(self.bank, "set_mask_core"):
+                self.bank.set_mask_core(cfg.loss.mask_core_px)
+                self.masks_note += f"; pixels {cfg.loss.mask_core_px} px inside the outline by opacity (mask_core_px)"
         # grid updates query only the cells near the occupied ones on the CPU (occupancy.occ_update_cells)
         cells = cfg.occupancy.occ_update_cells
         self.occ_near = cells == "near" or (cells == "auto" and self.device.type == "cpu")
@@ -900,7 +903,8 @@ class Trainer:
                 terms |= losses.mask_bce(opacity, batch["mask"], mw)
             else:
                 m, has = self._pixel_min_sdf(out)
-                terms |= losses.mask_silhouette(m, has, opacity, batch["mask"], mw, self.field.inv_s(), mask_form)
+                terms |= losses.mask_silhouette(m, has, opacity, batch["mask"], mw, self.field.inv_s(), mask_form,
+                                                batch.get("core"))
         elif bg_on:
             bw = self.bg_w_dev if capturing else self.background_weight_at(p)  # a replay reads the ramp
             is_bg = batch["bg"]
