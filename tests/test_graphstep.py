@@ -50,6 +50,7 @@ def test_buckets_hold_the_count_and_are_few():
 def test_the_presets_mask_forms():
     """The GPU preset states the mask as where rays cross the surface; the CPU preset keeps the BCE."""
     assert load_config("fewview").loss.mask_loss == "mixed"
+    assert load_config("fewview").loss.mask_core_px == 4
     assert load_config("cpu-quick").loss.mask_loss == "bce"
 
 
