@@ -240,7 +240,7 @@ def test_shared_inputs_are_fixed_per_layout_and_not_copied_again():
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="CUDA graphs need a CUDA device")
 @pytest.mark.parametrize("extra", [[], ["hull=bound"], ["mask_start=on", "mask_weight_start=0.8", "mask_start_frac=0.3"],
                                    ["mask_loss=mixed"], "train-step path", ["masks=off", "bg_prior=on"],
-                                   "surface prior", ["network.highlight=true"]])
+                                   "surface prior", ["network.highlight=true"], ["mask_loss=mixed", "mask_core_px=2"]])
 def test_cuda_replayed_graph_matches_the_eager_step(tmp_path, extra):
     """Graph steps (first: eager on the side stream + capture; then replays) against eager
     steps on the same inputs: the same loss and parameters after every step. The scene is
