@@ -107,16 +107,19 @@ def test_grouped_render_equals_per_shot_renders(gray, backend):
     assert (out["color"][:, 0] - out["color"][:, 4]).abs().max() > 1e-3
 
 
-@pytest.mark.parametrize("mask_loss", ["bce", "mixed"])  # mixed: each ray's minimum SDF under several shots
+@pytest.mark.parametrize("mask_loss", ["bce", "mixed", "mixed mask_core_px=1"])  # mixed: each ray's minimum SDF under several shots
 def test_trainer_uses_shot_bank_and_trains(gray, tmp_path, mask_loss):
     from fastneus.train.trainer import Trainer
 
     cfg = load_config("cpu-quick", ["steps=6", "occ_resolution=16", "target_samples=2048", "init_rays=64",
                                     "min_rays=32", "levels=4", "log2_table=12", "finest_res=64",
-                                    f"mask_loss={mask_loss}"])
+                                    *f"mask_loss={mask_loss}".split()])
     tr = Trainer(gray, cfg, tmp_path / "r", "cpu")
     assert isinstance(tr.bank, ShotBank) and tr.bank.k == 4
     assert tr.masks_used
+    core = tr.bank.mask_core  # one flag per viewpoint pixel, like the mask
+    assert (core is not None) is ("core" in mask_loss)
+    assert core is None or (core.shape == tr.bank.mask.shape and bool(core.any()))
     for _ in range(6):
         tr.train_step()
     assert tr.step == 6 and tr.skipped == 0

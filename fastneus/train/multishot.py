@@ -127,6 +127,7 @@ class ShotBank:
         self.rgb = rgb.to(self.device)                                           # [N, kmax, 3] uint8
         self.has_masks = load_masks and all(m is not None for m in masks)
         self.mask = torch.cat(masks).to(self.device) if self.has_masks else None  # [N] uint8
+        self.mask_core = None  # [N] bool, the masks' core (the trainer sets it: rays.mask_core), or None
         self.bg = bg.to(self.device) if bg is not None else None                  # [N] bool
         self.bg_fraction = float(bg.float().mean()) if bg is not None else 0.0
         # brightness-proportional pixel distribution over view pixels (not shots): flat in patterns

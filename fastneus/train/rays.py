@@ -525,7 +525,7 @@ class RayBank:
             self.bg_fraction = float(self.bg.float().mean())
         self.fg = None
         self.bg_soft = None  # [sum HW] uint8 background weight x 255 with the halo (set_halo), or None
-        self.mask_core = None  # [sum HW] bool, the masks' core (set_mask_core), or None
+        self.mask_core = None  # [sum HW] bool, the masks' core (the trainer sets it: mask_core), or None
         self._fg_load = None  # the foreground flags as read at load while set_fg_halo has trimmed self.fg
         self.fg_halo_share = 0.0  # the share set_fg_halo trimmed self.fg with (0: the flags as loaded)
         self._room = (bg_cap, sizes)  # for lit_room, decided only when asked
@@ -560,11 +560,6 @@ class RayBank:
             return background_codes(self.lut, background, tol)[self.rgb.long()].all(dim=1)
         diff = (self.rgb.to(torch.int16) - int(round(255 * background))).abs().amax(dim=1)
         return diff <= int(round(255 * tol))
-
-    def set_mask_core(self, px: int) -> None:
-        """Flag the mask pixels at least ``px`` pixels inside their silhouette (``self.mask_core``,
-        [sum HW] bool; None with ``px`` 0 or no masks): :func:`mask_core`."""
-        self.mask_core = mask_core(self.mask, self.wh, px) if px > 0 and self.mask is not None else None
 
     def set_halo(self, radius: int, share: float) -> None:
         """Weigh the lens's halo into the background flags (:func:`halo_weights`; batches then carry
@@ -738,7 +733,7 @@ def pixel_fields(bank, flat: torch.Tensor, u8: torch.Tensor) -> dict:
     out = {"rgb": to_linear(u8, bank.lut), "sat": u8 >= SATURATED, "pix": flat}
     if bank.mask is not None:
         out["mask"] = bank.mask[flat].float() / 255.0
-        core = getattr(bank, "mask_core", None)  # RayBank.set_mask_core
+        core = getattr(bank, "mask_core", None)  # the masks' core (loss.mask_core_px), or None
         if core is not None:
             out["core"] = core[flat].float()
     soft = getattr(bank, "bg_soft", None)  # the lens's halo weighted in (RayBank.set_halo)
