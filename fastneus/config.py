@@ -243,11 +243,11 @@ class LossSection:
                           "thin-legged realistic ant 2.70-2.92 -> 2.99-3.02; the CPU preset keeps bce, with which its "
                           "128-px realistic ant keeps its legs)",
                           choices=("bce", "sdf", "mixed"))
-    mask_core_px: int = knob(0, "with mask_loss sdf or mixed: mask pixels this many px inside the outline are "
-                             "held by the BCE on the opacity (a ray through the body's middle must be opaque), the "
-                             "rim by the SDF (0 = every mask pixel by the SDF; the GPU preset: 4, which keeps the "
-                             "lit-room realistic ant from opening a pocket inside its body, H200 10 s 3.79 -> 2.72 mm)",
-                             lo=0, hi=16)
+    mask_core: float = knob(0.0, "with mask_loss sdf or mixed: mask pixels this far inside the outline (a fraction "
+                            "of the image's larger side, at least 1 px) are held by the BCE on the opacity (a ray through "
+                            "the body's middle must be opaque), the rim by the SDF (0 = every mask pixel by the SDF; the "
+                            "GPU preset: 0.02, 4 px at 200 px, which keeps the lit-room realistic ant from opening a "
+                            "pocket inside its body, H200 10 s 3.79 -> 2.72 mm)", lo=0.0, hi=0.25)
     mask_start: str = knob("auto", "a stronger mask weight early in the run (mask_weight_start, falling to "
                            "mask_weight at mask_start_frac): thin parts a blurred photo barely shows are held by the "
                            "masks while the shape forms, the photos have the last word. auto: with masks in a lit "

@@ -50,7 +50,7 @@ def test_buckets_hold_the_count_and_are_few():
 def test_the_presets_mask_forms():
     """The GPU preset states the mask as where rays cross the surface; the CPU preset keeps the BCE."""
     assert load_config("fewview").loss.mask_loss == "mixed"
-    assert load_config("fewview").loss.mask_core_px == 4
+    assert load_config("fewview").loss.mask_core == 0.02
     assert load_config("cpu-quick").loss.mask_loss == "bce"
 
 
@@ -153,7 +153,7 @@ def _in_place(e, smp, gen):
 
 @pytest.mark.parametrize("extra", [[], ["curvature_weight=0.001"], ["hull=loss", "init_radius=0.95"], "in-place",
                                    ["mask_loss=mixed"], "in-place mask_loss=sdf", "in-place network.highlight=true",
-                                   ["mask_loss=mixed", "mask_core_px=1"]])
+                                   ["mask_loss=mixed", "mask_core=0.05"]])
 def test_padded_device_schedule_step_matches_the_eager_step(small_scene, tmp_path, extra):
     """The padded step against the eager one; ``in-place``: the samples written into the
     entry's buffers with earlier steps' samples left in the padding (not copied, not zeroed)."""
@@ -240,7 +240,7 @@ def test_shared_inputs_are_fixed_per_layout_and_not_copied_again():
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="CUDA graphs need a CUDA device")
 @pytest.mark.parametrize("extra", [[], ["hull=bound"], ["mask_start=on", "mask_weight_start=0.8", "mask_start_frac=0.3"],
                                    ["mask_loss=mixed"], "train-step path", ["masks=off", "bg_prior=on"],
-                                   "surface prior", ["network.highlight=true"], ["mask_loss=mixed", "mask_core_px=2"]])
+                                   "surface prior", ["network.highlight=true"], ["mask_loss=mixed", "mask_core=0.05"]])
 def test_cuda_replayed_graph_matches_the_eager_step(tmp_path, extra):
     """Graph steps (first: eager on the side stream + capture; then replays) against eager
     steps on the same inputs: the same loss and parameters after every step. The scene is

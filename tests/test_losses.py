@@ -159,12 +159,20 @@ def test_mask_core_erodes_each_frame_on_its_own():
     a[1:6, 2:7] = 255                      # a 5 x 5 block touching the bottom border
     b = np.full((4, 5), 255, np.uint8)     # a frame all mask
     flat = torch.from_numpy(np.concatenate([a.reshape(-1), b.reshape(-1)]))
-    core = mask_core(flat, torch.tensor([[8, 6], [5, 4]]), 1)
+    core = mask_core(flat, torch.tensor([[8, 6], [5, 4]]), 0.1)  # 1 px on both frames (0.8 and 0.5 round up to 1)
     ca, cb = core[:48].view(6, 8).numpy(), core[48:].view(4, 5).numpy()
     want = np.zeros((6, 8), bool)
     want[2:6, 3:6] = True                  # eroded on three sides, not at the border
     assert (ca == want).all() and cb.all()
-    assert not mask_core(flat, torch.tensor([[8, 6], [5, 4]]), 3)[:48].any()
+    assert not mask_core(flat, torch.tensor([[8, 6], [5, 4]]), 0.375)[:48].any()  # 3 px on the 8-px frame
+
+
+def test_core_radius_scales_with_the_image():
+    """The core's radius is a fraction of the image's larger side, at least one pixel."""
+    from fastneus.train.rays import core_radius
+
+    assert core_radius(0.02, 200, 200) == 4 and core_radius(0.02, 800, 600) == 16
+    assert core_radius(0.02, 20, 10) == 1 and core_radius(0.001, 200, 200) == 1
 
 
 def test_background_only_pushes_background_pixels():
@@ -270,7 +278,7 @@ def test_mask_start_is_chosen_in_a_lit_room_printed_and_saved(tmp_path, lit_and_
 
 @pytest.mark.parametrize("extra, note", [([], None), (["mask_loss=mixed"], "(mask_loss=mixed, background pixels by opacity)"),
                                          (["mask_loss=sdf"], "negative SDF (mask_loss=sdf)"),
-                                         (["mask_loss=mixed", "mask_core_px=2"], "2 px inside the outline by opacity")])
+                                         (["mask_loss=mixed", "mask_core=0.05"], "px or more inside the outline by opacity (mask_core 0.05")])
 def test_the_mask_terms_form_is_in_the_masks_note(tmp_path, lit_and_dark, extra, note):
     """A silhouette form of the mask term is printed and saved with the masks' decision."""
     from fastneus.config import load_config
@@ -283,7 +291,7 @@ def test_the_mask_terms_form_is_in_the_masks_note(tmp_path, lit_and_dark, extra,
     assert ("negative SDF" in tr.masks_note) is (note is not None)
     assert note is None or note in tr.masks_note
     core = tr.bank.mask_core  # flagged only for a silhouette form with a core radius
-    assert (core is not None) is ("mask_core_px=2" in extra)
+    assert (core is not None) is ("mask_core=0.05" in extra)
     if core is not None:
         inside = tr.bank.mask > 127
         assert bool(core.any()) and not bool((core & ~inside).any()) and int(core.sum()) < int(inside.sum())

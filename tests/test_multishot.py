@@ -107,7 +107,7 @@ def test_grouped_render_equals_per_shot_renders(gray, backend):
     assert (out["color"][:, 0] - out["color"][:, 4]).abs().max() > 1e-3
 
 
-@pytest.mark.parametrize("mask_loss", ["bce", "mixed", "mixed mask_core_px=1"])  # mixed: each ray's minimum SDF under several shots
+@pytest.mark.parametrize("mask_loss", ["bce", "mixed", "mixed mask_core=0.05"])  # mixed: each ray's minimum SDF under several shots
 def test_trainer_uses_shot_bank_and_trains(gray, tmp_path, mask_loss):
     from fastneus.train.trainer import Trainer
 

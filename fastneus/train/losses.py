@@ -133,7 +133,7 @@ def mask_silhouette(min_sdf: torch.Tensor, has: torch.Tensor, opacity: torch.Ten
         weight: the scheduled mask weight; inv_s: NeuS's sharpness (0-d);
         kind: ``sdf`` (both sides by the SDF) or ``mixed`` (mask pixels by the SDF, background
             pixels by the BCE on the opacity: nothing semi-transparent outside the silhouette);
-        core: [B] in {0, 1}, or None: mask pixels well inside the outline (``loss.mask_core_px``),
+        core: [B] in {0, 1}, or None: mask pixels well inside the outline (``loss.mask_core``),
             held by the BCE on the opacity instead (a ray through the middle of the body must be
             opaque: the hinge alone let the GPU preset open a pocket inside the realistic ant).
     """

@@ -701,20 +701,29 @@ def to_linear(u8: torch.Tensor, lut: torch.Tensor | None) -> torch.Tensor:
     return u8.float() / 255.0 if lut is None else lut[u8.long()]
 
 
-def mask_core(mask: torch.Tensor, wh: torch.Tensor, px: int) -> torch.Tensor:
-    """The mask's core: mask pixels whose (2 px + 1)-square neighbourhood is all mask (an erosion;
-    the image border does not erode). A ray through the core crosses the object well inside its
-    outline, where full opacity is what the photo says; a ray on the rim may only graze it.
+def core_radius(frac: float, w: int, h: int) -> int:
+    """The erosion radius in pixels for ``loss.mask_core`` (a fraction of the image's larger side,
+    at least 1 px): the band where a pixel-centre ray may only graze the surface widens with the
+    resolution (NeuS's soft surface spans more pixels), so the radius scales with the image."""
+    return max(1, int(round(frac * max(w, h))))
+
+
+def mask_core(mask: torch.Tensor, wh: torch.Tensor, frac: float) -> torch.Tensor:
+    """The mask's core: mask pixels whose (2 r + 1)-square neighbourhood is all mask, r =
+    :func:`core_radius` per frame (an erosion; the image border does not erode). A ray through the
+    core crosses the object well inside its outline, where full opacity is what the photo says; a
+    ray on the rim may only graze it.
 
     Args:
         mask: [sum HW] uint8 masks of the frames, concatenated (x 255); wh: [F, 2] (width, height);
-        px: the erosion radius in pixels (>= 1).
+        frac: the radius as a fraction of each frame's larger side (> 0).
     Returns:
         [sum HW] bool on the masks' device.
     """
     inside = (mask > 127).float()
     out, off = [], 0
     for w, h in wh.tolist():
+        px = core_radius(frac, w, h)
         m = inside[off:off + w * h].view(1, 1, h, w)
         # a min-filter as a max-filter of the negation (max_pool2d ignores its padding)
         out.append((-torch.nn.functional.max_pool2d(-m, 2 * px + 1, stride=1, padding=px)).reshape(-1) > 0.5)
@@ -733,7 +742,7 @@ def pixel_fields(bank, flat: torch.Tensor, u8: torch.Tensor) -> dict:
     out = {"rgb": to_linear(u8, bank.lut), "sat": u8 >= SATURATED, "pix": flat}
     if bank.mask is not None:
         out["mask"] = bank.mask[flat].float() / 255.0
-        core = getattr(bank, "mask_core", None)  # the masks' core (loss.mask_core_px), or None
+        core = getattr(bank, "mask_core", None)  # the masks' core (loss.mask_core), or None
         if core is not None:
             out["core"] = core[flat].float()
     soft = getattr(bank, "bg_soft", None)  # the lens's halo weighted in (RayBank.set_halo)

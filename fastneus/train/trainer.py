@@ -29,7 +29,7 @@ from fastneus.train.progress import ProgressWriter
 from fastneus.train.rig import Rig
 from fastneus.train.rig import load_into as rig_load
 from fastneus.train.rig import state_of as rig_state
-from fastneus.train.rays import (RayBank, build_projection, halo_radius, mask_core, pattern_images, photo_masks,
+from fastneus.train.rays import (RayBank, build_projection, core_radius, halo_radius, mask_core, pattern_images, photo_masks,
                                   training_lut)
 from fastneus.data.response import decode_lut, is_identity, resolve_response
 
@@ -236,9 +236,11 @@ class Trainer:
         if self.masks_used and cfg.loss.mask_loss != "bce":  # the mask term's form (the GPU preset: mixed)
             self.masks_note += (f"; mask pixels' rays must reach a negative SDF (mask_loss={cfg.loss.mask_loss}"
                                 f"{'' if cfg.loss.mask_loss == 'sdf' else ', background pixels by opacity'})")
-            if cfg.loss.mask_core_px > 0:  # per-frame or per-viewpoint masks alike ([sum HW] with wh)
-                self.bank.mask_core = mask_core(self.bank.mask, self.bank.wh, cfg.loss.mask_core_px)
-                self.masks_note += f"; pixels {cfg.loss.mask_core_px} px inside the outline by opacity (mask_core_px)"
+            if cfg.loss.mask_core > 0:  # per-frame or per-viewpoint masks alike ([sum HW] with wh)
+                self.bank.mask_core = mask_core(self.bank.mask, self.bank.wh, cfg.loss.mask_core)
+                w, h = (int(v) for v in self.bank.wh[0].tolist())
+                self.masks_note += (f"; pixels {core_radius(cfg.loss.mask_core, w, h)} px or more inside the outline "
+                                    f"by opacity (mask_core {cfg.loss.mask_core:g} of the image)")
         # grid updates query only the cells near the occupied ones on the CPU (occupancy.occ_update_cells)
         cells = cfg.occupancy.occ_update_cells
         self.occ_near = cells == "near" or (cells == "auto" and self.device.type == "cpu")
