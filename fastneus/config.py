@@ -248,6 +248,8 @@ class LossSection:
                             "the body's middle must be opaque), the rim by the SDF (0 = every mask pixel by the SDF; the "
                             "GPU preset: 0.02, 4 px at 200 px, which keeps the lit-room realistic ant from opening a "
                             "pocket inside its body, H200 10 s 3.79 -> 2.72 mm)", lo=0.0, hi=0.25)
+    mask_thin: bool = knob(False, "with mask_core: the mask's parts narrower than the core's square (the mask minus "
+                           "its opening: legs, antennae) are held by the opacity too, not by the SDF hinge")
     mask_start: str = knob("auto", "a stronger mask weight early in the run (mask_weight_start, falling to "
                            "mask_weight at mask_start_frac): thin parts a blurred photo barely shows are held by the "
                            "masks while the shape forms, the photos have the last word. auto: with masks in a lit "

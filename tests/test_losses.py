@@ -167,6 +167,24 @@ def test_mask_core_erodes_each_frame_on_its_own():
     assert not mask_core(flat, torch.tensor([[8, 6], [5, 4]]), 0.375)[:48].any()  # 3 px on the 8-px frame
 
 
+def test_mask_thin_adds_the_parts_narrower_than_the_square():
+    """thin: the mask minus its opening joins the core (a 1-px leg off a block); the block's rim,
+    which lies beside its core, stays out."""
+    from fastneus.train.rays import mask_core
+
+    a = np.zeros((9, 12), np.uint8)
+    a[1:8, 1:6] = 255                      # a 7 x 5 block
+    a[4, 6:11] = 255                       # a 1-px leg off its right side
+    flat, wh = torch.from_numpy(a.reshape(-1)), torch.tensor([[12, 9]])
+    core = mask_core(flat, wh, 1 / 12).view(9, 12).numpy()           # r = 1
+    both = mask_core(flat, wh, 1 / 12, thin=True).view(9, 12).numpy()
+    want = np.zeros((9, 12), bool)
+    want[2:7, 2:5] = True
+    assert (core == want).all()
+    want[4, 6:11] = True                   # the leg; the block's rim (in its opening) is not added
+    assert (both == want).all()
+
+
 def test_core_radius_scales_with_the_image():
     """The core's radius is a fraction of the image's larger side, at least one pixel."""
     from fastneus.train.rays import core_radius

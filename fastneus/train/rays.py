@@ -708,25 +708,33 @@ def core_radius(frac: float, w: int, h: int) -> int:
     return max(1, int(round(frac * max(w, h))))
 
 
-def mask_core(mask: torch.Tensor, wh: torch.Tensor, frac: float) -> torch.Tensor:
+def mask_core(mask: torch.Tensor, wh: torch.Tensor, frac: float, thin: bool = False) -> torch.Tensor:
     """The mask's core: mask pixels whose (2 r + 1)-square neighbourhood is all mask, r =
     :func:`core_radius` per frame (an erosion; the image border does not erode). A ray through the
     core crosses the object well inside its outline, where full opacity is what the photo says; a
     ray on the rim may only graze it.
 
+    With ``thin``, also the mask's parts narrower than the square (the mask minus its opening, the
+    eroded mask dilated back): a leg or an antenna has no core and no grazing rim beside one, only
+    rays that cross it; the SDF hinge stops pulling once such a ray enters it and lets a defocused
+    photo thin it, which the opacity does not.
+
     Args:
         mask: [sum HW] uint8 masks of the frames, concatenated (x 255); wh: [F, 2] (width, height);
-        frac: the radius as a fraction of each frame's larger side (> 0).
+        frac: the radius as a fraction of each frame's larger side (> 0); thin: add the thin parts.
     Returns:
         [sum HW] bool on the masks' device.
     """
+    pool = torch.nn.functional.max_pool2d  # ignores its padding: the image border neither erodes nor dilates
     inside = (mask > 127).float()
     out, off = [], 0
     for w, h in wh.tolist():
         px = core_radius(frac, w, h)
         m = inside[off:off + w * h].view(1, 1, h, w)
-        # a min-filter as a max-filter of the negation (max_pool2d ignores its padding)
-        out.append((-torch.nn.functional.max_pool2d(-m, 2 * px + 1, stride=1, padding=px)).reshape(-1) > 0.5)
+        core = -pool(-m, 2 * px + 1, stride=1, padding=px)  # a min-filter: the erosion
+        if thin:  # mask - opening(mask)
+            core = torch.maximum(core, m - pool(core, 2 * px + 1, stride=1, padding=px))
+        out.append(core.reshape(-1) > 0.5)
         off += w * h
     return torch.cat(out)
 

@@ -237,9 +237,10 @@ class Trainer:
             self.masks_note += (f"; mask pixels' rays must reach a negative SDF (mask_loss={cfg.loss.mask_loss}"
                                 f"{'' if cfg.loss.mask_loss == 'sdf' else ', background pixels by opacity'})")
             if cfg.loss.mask_core > 0:  # per-frame or per-viewpoint masks alike ([sum HW] with wh)
-                self.bank.mask_core = mask_core(self.bank.mask, self.bank.wh, cfg.loss.mask_core)
+                self.bank.mask_core = mask_core(self.bank.mask, self.bank.wh, cfg.loss.mask_core, cfg.loss.mask_thin)
                 w, h = (int(v) for v in self.bank.wh[0].tolist())
-                self.masks_note += (f"; pixels {core_radius(cfg.loss.mask_core, w, h)} px or more inside the outline "
+                self.masks_note += (f"; pixels {core_radius(cfg.loss.mask_core, w, h)} px or more inside the outline"
+                                    f"{', and parts thinner than that, ' if cfg.loss.mask_thin else ' '}"
                                     f"by opacity (mask_core {cfg.loss.mask_core:g} of the image)")
         # grid updates query only the cells near the occupied ones on the CPU (occupancy.occ_update_cells)
         cells = cfg.occupancy.occ_update_cells
