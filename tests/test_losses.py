@@ -185,6 +185,30 @@ def test_mask_thin_adds_the_parts_narrower_than_the_square():
     assert (both == want).all()
 
 
+def test_mask_core_matches_a_min_filter_reference():
+    """OpenCV's rectangle morphology against a plain torch min/max filter (max_pool2d, which ignores
+    its padding as the border rule says) on random blobs, frames of two sizes, radii 1-3, with and
+    without the thin parts."""
+    from fastneus.train.rays import core_radius, mask_core
+
+    pool = torch.nn.functional.max_pool2d
+    gen = torch.Generator().manual_seed(3)
+    for frac in (0.05, 0.1, 0.15):
+        sizes = [(20, 14), (17, 23)]
+        blobs = [(pool(torch.rand(1, 1, h, w, generator=gen), 3, 1, 1) > 0.75).to(torch.uint8) * 255 for w, h in sizes]
+        flat = torch.cat([b.reshape(-1) for b in blobs])
+        wh = torch.tensor(sizes)
+        for thin in (False, True):
+            got, want = mask_core(flat, wh, frac, thin), []
+            for b, (w, h) in zip(blobs, sizes):
+                r, m = core_radius(frac, w, h), (b > 127).float()
+                core = -pool(-m, 2 * r + 1, 1, r)
+                if thin:
+                    core = torch.maximum(core, m - pool(core, 2 * r + 1, 1, r))
+                want.append(core.reshape(-1) > 0.5)
+            assert torch.equal(got, torch.cat(want))
+
+
 def test_core_radius_scales_with_the_image():
     """The core's radius is a fraction of the image's larger side, at least one pixel."""
     from fastneus.train.rays import core_radius

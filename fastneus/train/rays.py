@@ -725,18 +725,22 @@ def mask_core(mask: torch.Tensor, wh: torch.Tensor, frac: float, thin: bool = Fa
     Returns:
         [sum HW] bool on the masks' device.
     """
-    pool = torch.nn.functional.max_pool2d  # ignores its padding: the image border neither erodes nor dilates
-    inside = (mask > 127).float()
+    import cv2
+
+    # OpenCV's rectangle morphology costs O(1) per pixel whatever the radius (a torch max-pool costs
+    # O(r^2): 12 s for one 3-Mpx photo at r = 40 on a CPU); its default border neither erodes nor dilates
+    inside = (mask > 127).to(torch.uint8).cpu().numpy()
     out, off = [], 0
     for w, h in wh.tolist():
         px = core_radius(frac, w, h)
-        m = inside[off:off + w * h].view(1, 1, h, w)
-        core = -pool(-m, 2 * px + 1, stride=1, padding=px)  # a min-filter: the erosion
-        if thin:  # mask - opening(mask)
-            core = torch.maximum(core, m - pool(core, 2 * px + 1, stride=1, padding=px))
-        out.append(core.reshape(-1) > 0.5)
+        square = cv2.getStructuringElement(cv2.MORPH_RECT, (2 * px + 1, 2 * px + 1))
+        m = inside[off:off + w * h].reshape(h, w)
+        core = cv2.erode(m, square)
+        if thin:  # mask - opening(mask): the opening lies inside the mask, so no uint8 wrap
+            core = np.maximum(core, m - cv2.dilate(core, square))
+        out.append(core.reshape(-1))
         off += w * h
-    return torch.cat(out)
+    return torch.from_numpy(np.concatenate(out)).to(mask.device) > 0
 
 
 def pixel_fields(bank, flat: torch.Tensor, u8: torch.Tensor) -> dict:
