@@ -266,6 +266,7 @@ def profile_steps(tr, steps: int, top_n: int = 12) -> dict:
     per: dict[str, list[float]] = {k: [] for k in ("wall_ms", "kernels", "copies", "gpu_busy_ms", "syncs",
                                                    "samples")}
     kernel_ms: dict[str, float] = {}
+    kernel_n: dict[str, int] = {}  # launches per name: many tiny ones are a fusion candidate, not a slow kernel
     for _ in range(steps):
         if cuda:
             torch.cuda.synchronize()
@@ -294,6 +295,7 @@ def profile_steps(tr, steps: int, top_n: int = 12) -> dict:
                 else:
                     n_k += 1
                     kernel_ms[name] = kernel_ms.get(name, 0.0) + (iv.end - iv.start) / 1000.0
+                    kernel_n[name] = kernel_n.get(name, 0) + 1
             elif e.name in SYNC_NAMES and lo <= e.time_range.start <= hi:
                 n_sync += 1
         per["wall_ms"].append(wall)
@@ -308,8 +310,8 @@ def profile_steps(tr, steps: int, top_n: int = 12) -> dict:
     top = sorted(kernel_ms.items(), key=lambda kv: -kv[1])[:top_n]
     total_k = sum(kernel_ms.values())
     return {"steps": steps, "median": med,
-            "top_kernels": [{"kernel": k[:90], "ms_per_step": v / steps, "share_pct": 100 * ratio(v, total_k)}
-                            for k, v in top]}
+            "top_kernels": [{"kernel": k[:90], "ms_per_step": v / steps, "share_pct": 100 * ratio(v, total_k),
+                             "launches_per_step": kernel_n[k] / steps} for k, v in top]}
 
 
 def is_gemm_kernel(name: str) -> bool:
@@ -437,7 +439,7 @@ def main() -> None:
                                  "samples_per_s_M", "unprofiled_ms", "samples_per_s_M_unprofiled"])
     md += "\n\nKernels taking the most device time (ms per step, share of all kernel time):\n\n"
     md += md_table([{k: (round(v, 3) if isinstance(v, float) else v) for k, v in r.items()}
-                    for r in res["top_kernels"]], ["kernel", "ms_per_step", "share_pct"])
+                    for r in res["top_kernels"]], ["kernel", "ms_per_step", "share_pct", "launches_per_step"])
     if res.get("sync_sites"):
         md += "\n\nWhere the host waits for the device (torch's sync debug mode, per step):\n\n"
         md += md_table(res["sync_sites"], ["site", "per_step"])
