@@ -34,7 +34,7 @@ from benchutil import (command_line, default_preset, make_trainer, md_table, med
 def step_times(tr, budget: float, sync_each: bool = False) -> list[dict]:
     """Run ``tr.fit`` and return one row per ``train_step`` call: ``step`` (the number during the
     call; the grid updates when it is a multiple of ``occ_update_every``), ``s`` (host seconds),
-    ``kind`` (``capture``: a CUDA graph recorded; ``eager``: no graph; ``counted``: a replay whose
+    ``grid_s`` (seconds inside the occupancy grid's update), ``kind`` (``capture``: a CUDA graph recorded; ``eager``: no graph; ``counted``: a replay whose
     sample count was read back, a host sync; ``replay``: a replay without one; ``cpu``) and
     ``rays``.
 
@@ -42,30 +42,42 @@ def step_times(tr, budget: float, sync_each: bool = False) -> list[dict]:
     those of ``fastneus train``. ``sync_each``: synchronise after each call (each step's device
     time lands in its own row; the steps no longer overlap, so the run makes fewer of them).
     """
-    inner = tr.train_step
+    inner, grid_update = tr.train_step, tr.grid.update
     rows: list[dict] = []
     cuda = tr.device.type == "cuda"
     g = tr.graphs
+    in_grid = [0.0]
+
+    def timed_grid(*a, **k):  # the grid update's own share of its step (with sync_each: device time included)
+        if sync_each and cuda:
+            torch.cuda.synchronize(tr.device)
+        t = time.perf_counter()
+        grid_update(*a, **k)
+        if sync_each and cuda:
+            torch.cuda.synchronize(tr.device)
+        in_grid[0] += time.perf_counter() - t
 
     def counters():
         return (0, 0, 0, 0) if g is None else (g.captured, g.eager, g.replayed, g.unsynced)
 
     def timed():
         step, before, t = tr.step, counters(), time.perf_counter()
+        in_grid[0] = 0.0
         rec = inner()
         if sync_each and cuda:
             torch.cuda.synchronize(tr.device)
         d = [a - b for a, b in zip(counters(), before)]
         kind = ("capture" if d[0] else "eager" if d[1] else "counted" if d[2] > d[3] else "replay") \
             if g is not None else "cpu"
-        rows.append({"step": step, "s": time.perf_counter() - t, "kind": kind, "rays": int(tr.n_rays)})
+        rows.append({"step": step, "s": time.perf_counter() - t, "kind": kind, "rays": int(tr.n_rays),
+                     "grid_s": in_grid[0]})
         return rec
 
-    tr.train_step = timed
+    tr.train_step, tr.grid.update = timed, timed_grid
     try:
         tr.fit(final_save=False)
     finally:
-        tr.train_step = inner
+        tr.train_step, tr.grid.update = inner, grid_update
     return rows
 
 
@@ -137,6 +149,8 @@ def main() -> None:
            "exposure estimate": [int(tr.exposure_decision["step"])] if "step" in tr.exposure_decision else []}
     res = summarise(rows, tr.step, c.occupancy.occ_update_every, est, args.top)
     res["rows"] = rows
+    ups = [r["grid_s"] for r in rows if r["grid_s"] > 0]
+    res["grid_update_ms"] = {"calls": len(ups), "median": 1e3 * median(ups) if ups else 0.0, "sum_s": sum(ups)}
     res["elapsed_s"] = tr.elapsed
     res["outside_steps_s"] = tr.elapsed - res["total_s"]  # the log records' syncs, geometry init
     res["steps"] = tr.step
@@ -151,9 +165,13 @@ def main() -> None:
           f"training clock {res['elapsed_s']:.3f} s, summed step calls {res['total_s']:.3f} s.\n\n")
     md += md_table([{"median_ms": round(res["median_ms"], 3), "steady_s": round(res["steady_s"], 3),
                      "excess_s": round(res["excess_s"], 3), "outside_steps_s": round(res["outside_steps_s"], 3),
+                     "grid_updates": res["grid_update_ms"]["calls"],
+                     "grid_update_ms": round(res["grid_update_ms"]["median"], 3),
                      "blur_s": res["blur_s"], "exposure_s": res["exposure_s"],
-                     "graphs": res["graphs"]}],
-                   ["median_ms", "steady_s", "excess_s", "outside_steps_s", "blur_s", "exposure_s", "graphs"])
+                     "graphs": None if res["graphs"] is None else
+                     {k: res["graphs"][k] for k in ("captured", "eager", "replayed", "unsynced")}}],
+                   ["median_ms", "steady_s", "excess_s", "outside_steps_s", "grid_updates", "grid_update_ms", "blur_s",
+                    "exposure_s", "graphs"])
     md += "\n\nExcess over the median by the step's cause:\n\n"
     md += md_table([{"cause": k, "calls": v["calls"], "excess_s": round(v["excess_s"], 3)}
                     for k, v in res["by_cause"].items()], ["cause", "calls", "excess_s"])
