@@ -189,6 +189,7 @@ def estimate_blur_by_render(tr, sigmas=AUTO_SIGMAS, n_rays: int = AUTO_RAYS) -> 
         field = _FieldOnce(tr.field)  # one field evaluation for every render below
 
         def render(proj, i_r: float, i_b: float) -> torch.Tensor:
+            """[N, 3] on the device (read back together below: one host sync, not one per render)."""
             ir = torch.full((1,), float(i_r), device=dev)
             ib = torch.full((1,), float(i_b), device=dev)
             out = shade_samples(field, smp, proj, batch["origins"], batch["dirs"], batch["fidx"], cfg,
@@ -196,9 +197,17 @@ def estimate_blur_by_render(tr, sigmas=AUTO_SIGMAS, n_rays: int = AUTO_RAYS) -> 
             pred = tr.rig.composite(out["color"], out, cfg.rays.background)
             if tr.log_gain is not None:
                 pred = pred * losses.exposure_gain(tr.log_gain, batch["fidx"])
-            return pred.double().cpu()
+            return pred
 
-        c0 = render(tr.rig.projection(), 0.0, 0.0)
+        def candidate(s: float) -> tuple[torch.Tensor, torch.Tensor]:
+            """The renders with i_b = 1 and with i_r = 1 through the patterns blurred by ``s`` (on a
+            GPU the candidates were built before the clock: Trainer.prime)."""
+            proj = tr.rig.projection(dataclasses.replace(tr.proj, store=tr.blurred_store(s, keep=True)))
+            return render(proj, 0.0, 1.0), render(proj, 1.0, 0.0)
+
+        dev_renders = [render(tr.rig.projection(), 0.0, 0.0)] + [r for s in sigmas for r in candidate(s)]
+        host = torch.stack(dev_renders).double().cpu()  # [1 + 2 M, N, 3]
+        c0 = host[0]
         y = batch["rgb"].double().cpu().expand_as(c0)
         keep = y < _SAT
         if batch.get("sat") is not None:
@@ -206,18 +215,16 @@ def estimate_blur_by_render(tr, sigmas=AUTO_SIGMAS, n_rays: int = AUTO_RAYS) -> 
         y, c0n = y[keep].numpy(), c0[keep].numpy()
         info["rays"] = int(batch["rgb"].shape[0])
 
-        def parts(s: float) -> tuple[np.ndarray, np.ndarray]:
-            """(a, b) of :func:`fit_illumination` with the patterns blurred by ``s`` (on a GPU the
-            candidates were built before the clock: Trainer.prime)."""
-            proj = tr.rig.projection(dataclasses.replace(tr.proj, store=tr.blurred_store(s, keep=True)))
-            return (render(proj, 0.0, 1.0) - c0)[keep].numpy(), (render(proj, 1.0, 0.0) - c0)[keep].numpy()
+        def parts(ib: torch.Tensor, ir: torch.Tensor) -> tuple[np.ndarray, np.ndarray]:
+            """(a, b) of :func:`fit_illumination` from a candidate's two renders (host, float64)."""
+            return (ib - c0)[keep].numpy(), (ir - c0)[keep].numpy()
 
-        ab = {float(s): parts(s) for s in sigmas}
+        ab = {float(s): parts(host[1 + 2 * k], host[2 + 2 * k]) for k, s in enumerate(sigmas)}
         wide = ab[float(max(sigmas))][0]
         near = wide > _NEAR * max(1e-6, float(np.percentile(wide, 99))) if wide.size else None
 
         def fit(s: float) -> tuple[float, float, float]:
-            a, b = ab[float(s)] if float(s) in ab else parts(s)
+            a, b = ab[float(s)] if float(s) in ab else parts(*(r.double().cpu() for r in candidate(s)))
             return fit_illumination(y, c0n, a, b, score=near)
 
         fits = [fit(s) for s in sigmas]
