@@ -240,10 +240,13 @@ def test_shared_inputs_are_fixed_per_layout_and_not_copied_again():
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="CUDA graphs need a CUDA device")
 @pytest.mark.parametrize("extra", [[], ["hull=bound"], ["mask_start=on", "mask_weight_start=0.8", "mask_start_frac=0.3"],
                                    ["mask_loss=mixed"], "train-step path", ["masks=off", "bg_prior=on"],
-                                   "surface prior", ["network.highlight=true"], ["mask_loss=mixed", "mask_core=0.05"]])
+                                   "surface prior", ["network.highlight=true"], ["mask_loss=mixed", "mask_core=0.05"],
+                                   "second key"])
 def test_cuda_replayed_graph_matches_the_eager_step(tmp_path, extra):
     """Graph steps (first: eager on the side stream + capture; then replays) against eager
-    steps on the same inputs: the same loss and parameters after every step. The scene is
+    steps on the same inputs: the same loss and parameters after every step. ``second key``: the
+    ray count doubles half-way, so a second graph is captured the way every capture after the
+    run's first is (recorded, then replayed for that step's update: no eager pass). The scene is
     rendered on the GPU (no small_scene: a GPU machine may have no CPU compiler for Warp).
     With a falling mask weight the replayed graph reads each step's weight from the device.
     ``train-step path``: as Trainer.train_step feeds it: the inputs in the shared fixed buffers
@@ -253,7 +256,7 @@ def test_cuda_replayed_graph_matches_the_eager_step(tmp_path, extra):
     path = extra == "train-step path"
     prior = extra == "surface prior"  # a one-shot's: faded weight and drawn points inside the graph; off past 0.45
     a, b = _pair(scene_on(None, tmp_path, "cuda"), tmp_path, "cuda",
-                 ["prior_frac=0.45"] if prior else [] if path else extra)
+                 ["prior_frac=0.45"] if prior else extra if isinstance(extra, list) else [])
     if prior:
         a.prior = b.prior = _sphere_prior("cuda")
     a.field._dev_sched = False  # StepGraphs switches it on
@@ -271,6 +274,8 @@ def test_cuda_replayed_graph_matches_the_eager_step(tmp_path, extra):
     replays = {}  # prior on / off -> replayed steps
     for i, p in enumerate(progress):
         before = graphs.replayed
+        if extra == "second key" and i == 4:
+            a.n_rays = b.n_rays = 2 * b.n_rays
         batch, xr, smp = _inputs(b, p)
         a.field.set_progress(p)
         a._set_lr(p)
@@ -310,7 +315,10 @@ def test_cuda_replayed_graph_matches_the_eager_step(tmp_path, extra):
         assert p == 0.5 or (float(a.cos_dev) == pytest.approx(a.cos_anneal(p)) and a.cos_anneal(p) < 1.0)
         assert (a.field.active_levels < a.field.hashgrid.levels) == (p < 0.1)
         assert int(a.field._levels_t[0]) == a.field.active_levels
-    assert graphs.captured >= 1 and graphs.replayed >= 4, graphs.summary()
+    if extra == "second key":  # both captures' steps were compared above: the run's first and a later one
+        assert graphs.captured == 2 and graphs.replayed >= 2, graphs.summary()
+    else:
+        assert graphs.captured >= 1 and graphs.replayed >= 4, graphs.summary()
     assert not prior or (replays.get(True, 0) >= 1 and replays.get(False, 0) >= 1), (replays, graphs.summary())
     assert graphs.enabled
     assert not path or graphs.unsynced >= 2, graphs.summary()
@@ -763,3 +771,24 @@ def test_the_draw_token_covers_every_tensor_a_draw_reads(small_scene, tmp_path, 
     assert out["origins"].shape == (64, 3)
     assert {"rgb", "offset", "wh", "kinv", "rot", "origin"} <= spy.seen
     assert spy.seen <= set(DRAW_FIELDS), spy.seen - set(DRAW_FIELDS)
+
+
+def test_ray_count_jumps_to_a_far_target_only_with_graphs():
+    """After the occupancy grid's first update the samples per ray fall several-fold: with CUDA
+    graphs the ray count goes straight to its new target (each bucket passed on the way would be an
+    eager step and a capture); near the target, and without graphs, it keeps its running mean."""
+    from fastneus.train.trainer import RAY_JUMP, Trainer
+
+    t = object.__new__(Trainer)
+    t.cfg = load_config("fewview", ["target_samples=262144", "min_rays=256", "max_rays=65536"])
+    for graphs in (None, object()):
+        t.graphs = graphs
+        t.n_rays = 1536
+        # 1536 rays gave 1536 * 30 samples: the target is 262144 / 30 = 8738 rays
+        n = t._next_ray_count(1536, 1536 * 30)
+        assert n == (8738 if graphs is not None else int(0.8 * 1536 + 0.2 * 262144 / 30))
+        t.n_rays = 8000  # within RAY_JUMP of the target: the running mean either way
+        assert 8738 / RAY_JUMP < 8000
+        assert t._next_ray_count(8000, 8000 * 30) == int(0.8 * 8000 + 0.2 * 262144 / 30)
+        t.n_rays = 1536  # an empty step (no samples) never jumps
+        assert t._next_ray_count(1536, 0) == int(0.8 * 1536 + 0.2 * 262144)

@@ -390,15 +390,21 @@ class StepGraphs:
             e.graph.replay()
             self.replayed += 1
             return dict(e.rec)
-        # first step of this key: the real update, eagerly on the side stream (warms up its
-        # cuBLAS handle and autograd there), then record the graph (recording runs nothing)
+        # first step of this key. The run's first capture: the real update eagerly on the side stream
+        # (it warms up the side stream's cuBLAS handle and workspace and autograd there), then the
+        # recording (which runs nothing). Later captures record first and replay for the update:
+        # the eager pass cost ~13 ms more than a replay in each of a 5-s run's ~9 captures (H200,
+        # scripts/budget_timeline.py, docs/perf-notes/2026-11-30-capture-without-eager-pass.md).
         t0 = time.perf_counter()
         cur = torch.cuda.current_stream(self.device)
         self.side.wait_stream(cur)
-        with torch.cuda.stream(self.side):
-            e.mark_live()
-            rec = tr.compute(e.batch, e.xr, e.smp, p, valid=e.valid, device_adam=True, fits=e.fits)
-        cur.wait_stream(self.side)
+        warm = self.captured == 0
+        rec = None
+        if warm:
+            with torch.cuda.stream(self.side):
+                e.mark_live()
+                rec = tr.compute(e.batch, e.xr, e.smp, p, valid=e.valid, device_adam=True, fits=e.fits)
+            cur.wait_stream(self.side)
         try:
             g = torch.cuda.CUDAGraph()
             tr.opt.zero_grad(set_to_none=True)  # the graph allocates its own gradients
@@ -408,6 +414,9 @@ class StepGraphs:
             cur.wait_stream(self.side)
             e.graph, e.rec = g, out
             self.captured += 1
+            if not warm:  # the step's update: the graph just recorded
+                g.replay()
+                rec = dict(out)
             self.captures.append({"step": tr.step, "rays": key[0], "capacity": e.capacity,
                                   "seconds": round(time.perf_counter() - t0, 4)})
         except Exception as err:  # noqa: BLE001 - any capture failure falls back to eager steps
@@ -416,6 +425,10 @@ class StepGraphs:
             if self.console is not None:
                 self.console.print(f"CUDA graph capture failed ({type(err).__name__}: {str(err).splitlines()[0][:120]}); "
                                    "training goes on with eager steps (run.cuda_graph=off hides this)")
+            if rec is None:  # nothing ran yet: this step's update, eagerly
+                cur.wait_stream(self.side)
+                e.mark_live()
+                rec = tr.compute(e.batch, e.xr, e.smp, p, valid=e.valid, device_adam=True, fits=e.fits)
         return rec
 
     def capped(self, tr, batch: dict, xr: torch.Tensor, p: float) -> tuple | None:

@@ -35,6 +35,8 @@ from fastneus.data.response import decode_lut, is_identity, resolve_response
 
 
 PLAIN_EVERY_S = 5.0  # seconds between progress lines when stdout is not a terminal
+# with CUDA graphs, a ray count this far (a factor) from its target jumps there (Trainer._next_ray_count)
+RAY_JUMP = 1.5
 # host memory the CPU may spend keeping the pattern images and the blur estimate's blurred stores
 # (read and blurred once per run instead of once per candidate and round: ~1 s of a 30-s CPU run)
 HOST_PATTERN_CACHE = 64 << 20
@@ -825,10 +827,21 @@ class Trainer:
         return batch, xr
 
     def _next_ray_count(self, n: int, s: int) -> int:
-        """The ray count adapted to the sample budget after a step of ``n`` rays and ``s`` samples."""
+        """The ray count adapted to the sample budget after a step of ``n`` rays and ``s`` samples:
+        a running mean towards ``target_samples / samples per ray`` (the count per ray is noisy).
+
+        With CUDA graphs, a count more than :data:`RAY_JUMP` away from that target goes straight to
+        it: after the occupancy grid's first update the mean climbed through three ray buckets in
+        ten steps, each one eager step and one capture (~60 ms of a 5-s budget apiece on an H200,
+        scripts/budget_timeline.py), replayed a few times and never again."""
         c = self.cfg.rays
         mean_spr = max(1.0, s / max(1, n))
-        return int(min(c.max_rays, max(c.min_rays, 0.8 * self.n_rays + 0.2 * c.target_samples / mean_spr)))
+        want = c.target_samples / mean_spr
+        if self.graphs is not None and s > 0 and not want / RAY_JUMP <= self.n_rays <= want * RAY_JUMP:
+            new = want
+        else:
+            new = 0.8 * self.n_rays + 0.2 * want
+        return int(min(c.max_rays, max(c.min_rays, new)))
 
     def compute(self, batch: dict, xr: torch.Tensor, smp: dict, p: float, valid: torch.Tensor | None = None,
                 device_adam: bool = False, fits: torch.Tensor | None = None) -> dict | None:
