@@ -27,9 +27,11 @@ per step. It is recorded on the key's first capped step and retired when what th
 replaced (:data:`DRAW_FIELDS`, :meth:`StepGraphs.draw_token`).
 
 One graph per (ray count, sample capacity, loss terms). A key is captured when two steps in a
-row have it (a key seen once, as while the ray count settles after the occupancy grid's first
-update, runs eagerly and is never recorded): that second step runs eagerly on a side stream (it
-is that step's update) and then records the graph. A failed capture turns the
+row have it (a key seen once runs eagerly and is never recorded; with graphs the trainer's ray
+count jumps straight to a far target, so it does not pass through several keys after the occupancy
+grid's first update): on the run's first capture that second step runs eagerly on a side stream
+(its update, warming that stream's cuBLAS handle and autograd) and then records the graph; later
+captures record first and replay the new graph for that step's update. A failed capture turns the
 graphs off for the run with one printed line; training goes on eagerly. ``run.cuda_graph=off``
 keeps every step eager (the tested reference; tests/test_graphstep.py compares the two).
 """
