@@ -156,9 +156,7 @@ def main() -> None:
     res["steps"] = tr.step
     res["blur_s"] = float(tr.blur_decision.get("seconds", 0.0) or 0.0)
     res["exposure_s"] = float(tr.exposure_decision.get("seconds", 0.0) or 0.0)
-    res["graphs"] = tr.graphs.summary() if tr.graphs is not None else None
-    if tr.graphs is not None:
-        tr.graphs.release()
+    res["graphs"] = tr.graphs.summary() if tr.graphs is not None else None  # (fit released the graphs' memory)
 
     cmd = command_line("budget_timeline.py")
     md = (f"{provenance_line(args.device, cmd)} {preset} preset, a {args.budget:g}-s budget: {res['steps']} steps, "

@@ -401,18 +401,21 @@ class StepGraphs:
         cur = torch.cuda.current_stream(self.device)
         self.side.wait_stream(cur)
         warm = self.captured == 0
+
+        def update():  # the padded step on the entry's buffers: run eagerly, or recorded under capture
+            e.mark_live()
+            return tr.compute(e.batch, e.xr, e.smp, p, valid=e.valid, device_adam=True, fits=e.fits)
+
         rec = None
         if warm:
             with torch.cuda.stream(self.side):
-                e.mark_live()
-                rec = tr.compute(e.batch, e.xr, e.smp, p, valid=e.valid, device_adam=True, fits=e.fits)
+                rec = update()
             cur.wait_stream(self.side)
         try:
             g = torch.cuda.CUDAGraph()
             tr.opt.zero_grad(set_to_none=True)  # the graph allocates its own gradients
             with torch.cuda.graph(g, stream=self.side):
-                e.mark_live()
-                out = tr.compute(e.batch, e.xr, e.smp, p, valid=e.valid, device_adam=True, fits=e.fits)
+                out = update()
             cur.wait_stream(self.side)
             e.graph, e.rec = g, out
             self.captured += 1
@@ -429,8 +432,7 @@ class StepGraphs:
                                    "training goes on with eager steps (run.cuda_graph=off hides this)")
             if rec is None:  # nothing ran yet: this step's update, eagerly
                 cur.wait_stream(self.side)
-                e.mark_live()
-                rec = tr.compute(e.batch, e.xr, e.smp, p, valid=e.valid, device_adam=True, fits=e.fits)
+                rec = update()
         return rec
 
     def capped(self, tr, batch: dict, xr: torch.Tensor, p: float) -> tuple | None:
