@@ -24,6 +24,8 @@ _OPS = {
     "marching_cubes": "mesh",
     "adam_update": "adam",
     "adam_nonfinite": "adam",
+    "adam_update_multi": "adam",
+    "adam_nonfinite_multi": "adam",
 }
 
 BACKENDS = ("warp", "torch")

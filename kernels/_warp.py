@@ -81,6 +81,27 @@ def stream_of(t: torch.Tensor):
     return wp.stream_from_torch(torch.cuda.current_stream(t.device))
 
 
+_DUMMIES: dict = {}
+
+
+def dummy(shape: tuple, ref: torch.Tensor | torch.device, site: str, dtype=torch.float32) -> torch.Tensor:
+    """A small zeroed tensor for a kernel argument that is not used: an input the kernel does not
+    read (its flag off) or an output nobody reads (a gradient not asked for). Cached per call
+    ``site``, shape, dtype and device, so a step does not launch a fill for each (~2 us each, 10-20
+    a step on the GPU; perf note 39). Each site has its own tensor: one site's unread writes never
+    reach another site's unread input. Not cached while a CUDA graph is being captured (the
+    tensor would live in the graph's memory pool).
+    """
+    dev = ref.device if isinstance(ref, torch.Tensor) else torch.device(ref)
+    key = (site, tuple(shape), dtype, dev)
+    t = _DUMMIES.get(key)
+    if t is None:
+        t = torch.zeros(shape, dtype=dtype, device=dev)
+        if not (dev.type == "cuda" and torch.cuda.is_current_stream_capturing()):
+            _DUMMIES[key] = t
+    return t
+
+
 def to_wp(t: torch.Tensor, dtype=None, requires_grad: bool = False, ctype: bool = False):
     """Zero-copy view of a contiguous torch tensor as a Warp array.
 

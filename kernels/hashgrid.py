@@ -556,8 +556,8 @@ def _backward_launches(u_c, t_c, go, cfg: HashGridConfig, n_active: int, active:
     parts = -(-want // groups)
     level_groups = _warp.split(n_active, groups)
     point_ranges = _warp.split(N, parts)
-    dummy_vec = torch.zeros((1, 3), dtype=torch.float32, device=dev)
-    dummy = torch.zeros((1,), dtype=torch.float32, device=dev)
+    dummy_vec = _warp.dummy((1, 3), u_c, "hash_bwd.u")
+    dummy = _warp.dummy((1,), u_c, "hash_bwd.table")
     # table-gradient buffer per point range, u-gradient buffer per level group (index 0: the outputs)
     gt_bufs = [grad_table.view(-1) if need_table else dummy] + [
         torch.zeros_like(grad_table).view(-1) if need_table else dummy for _ in point_ranges[1:]]
@@ -655,10 +655,10 @@ class _HashEncodeJac(torch.autograd.Function):
         grad_table = torch.zeros_like(t_c) if ctx.needs_input_grad[1] else None
         if N > 0 and n_active > 0 and (need_u or need_table):
             dev = u_c.device
-            dummy = torch.zeros((1,), dtype=torch.float32, device=dev)
-            dummy2 = torch.zeros((1, 1), dtype=torch.float32, device=dev)
-            dummy_vec = torch.zeros((1, 3), dtype=torch.float32, device=dev)
-            dummy_jac = torch.zeros((1, 1, 3), dtype=torch.float32, device=dev)
+            dummy = _warp.dummy((1,), u_c, "hash_jac_bwd.table")
+            dummy2 = _warp.dummy((1, 1), u_c, "hash_jac_bwd.go")
+            dummy_vec = _warp.dummy((1, 3), u_c, "hash_jac_bwd.u")
+            dummy_jac = _warp.dummy((1, 1, 3), u_c, "hash_jac_bwd.gj")
             go = dummy2 if grad_out is None else grad_out.float().contiguous()
             gj = dummy_jac if grad_jac is None else grad_jac.float().contiguous()
             # CPU threads: one chunk per group of levels. Groups write disjoint parts of the table
@@ -945,8 +945,8 @@ class _GradFromJac(torch.autograd.Function):
         gc, jc = ctx.saved_tensors
         need_g, need_jac = ctx.needs_input_grad[0], ctx.needs_input_grad[1]
         N, C = gc.shape
-        d_g = torch.empty_like(gc) if need_g else torch.zeros((1, 1), device=gc.device)
-        d_jac = torch.empty_like(jc) if need_jac else torch.zeros((1, 1, 3), device=gc.device)
+        d_g = torch.empty_like(gc) if need_g else _warp.dummy((1, 1), gc, "grad_from_jac_bwd.g")
+        d_jac = torch.empty_like(jc) if need_jac else _warp.dummy((1, 1, 3), gc, "grad_from_jac_bwd.jac")
         if N > 0 and (need_g or need_jac):
             doc = d_out.float().contiguous()
             F = C - 3

@@ -274,7 +274,9 @@ def _stripes(device: torch.device, S: int, w_floats: int) -> tuple[int, int]:
 
 def _striped(need: bool, rows: int, size: int, device) -> torch.Tensor:
     """Zeroed [rows, size] float32 accumulator, or a [1, 1] dummy the kernel never touches."""
-    return torch.zeros((rows, size) if need else (1, 1), dtype=torch.float32, device=device)
+    if not need:
+        return _warp.dummy((1, 1), device, "project.striped")
+    return torch.zeros((rows, size), dtype=torch.float32, device=device)
 
 
 def _unstripe(buf: torch.Tensor, like: torch.Tensor) -> torch.Tensor:
@@ -308,7 +310,7 @@ class _ProjectPattern(torch.autograd.Function):
         S, (F, P) = pos.shape[0], proj_W.shape[:2]
         need_sigma = bool(need[3] and ctx.use_att)
         sW, sB = _stripes(dev, S, F * P * 12)
-        d_pos = torch.empty_like(pos) if need[0] else torch.zeros((1, 3), device=dev)  # every row is written
+        d_pos = torch.empty_like(pos) if need[0] else _warp.dummy((1, 3), dev, "project.d_pos")  # every row is written
         d_W = _striped(need[1], sW, proj_W.numel(), dev)
         d_blur = _striped(need[2], sB, blur.numel(), dev)
         d_sigma = _striped(need_sigma, sB, 3, dev)
@@ -565,7 +567,7 @@ class _LaserLight(torch.autograd.Function):
         dev = pos.device
         S, (F, P) = pos.shape[0], proj_W.shape[:2]
         sW, _ = _stripes(dev, S, F * P * 12)
-        d_pos = torch.empty_like(pos) if need[0] else torch.zeros((1, 3), device=dev)  # every row is written
+        d_pos = torch.empty_like(pos) if need[0] else _warp.dummy((1, 3), dev, "project.d_pos")  # every row is written
         d_W = _striped(need[1], sW, proj_W.numel(), dev)
         _warp.launch(_laser_bwd, S,
                      [_wp(pos, wp.vec3), _wp(ray_index), _wp(ray_frame), _wp(proj_W, mat34), _wp(laser_on),

@@ -500,9 +500,9 @@ class _RenderPattern(torch.autograd.Function):
             _wp(i_b),
         ]
         use_q = q_ext is not None
-        q_arr = q_ext if use_q else torch.zeros((1, 3), dtype=torch.float32, device=ref.device)
+        q_arr = q_ext if use_q else _warp.dummy((1, 3), ref, "render_fwd.q")
         use_e = spec is not None
-        e_arr = spec if use_e else torch.zeros((1,), dtype=torch.float32, device=ref.device)
+        e_arr = spec if use_e else _warp.dummy((1,), ref, "render_fwd.e")
         inputs = common + [int(return_weights), _wp(q_arr, wp.vec3), int(use_q), _wp(e_arr), int(use_e)]
         per_ray_in = {6: (offsets, None), 7: (counts, None), 8: (dirs, wp.vec3), 9: (ray_frame, None)}
         outputs = [_wp(out_color, wp.vec3), _wp(out_opacity), _wp(out_depth), _wp(out_texture, wp.vec3),
@@ -530,14 +530,16 @@ class _RenderPattern(torch.autograd.Function):
 
         def buf(i, shape):
             # zero-initialised gradient buffer, or a size-1 dummy the kernel never writes
-            return torch.zeros(shape if needs[i] else (1,) + tuple(shape[1:]), dtype=torch.float32, device=dev)
+            if not needs[i]:
+                return _warp.dummy((1,) + tuple(shape[1:]), dev, f"render_bwd.{i}")
+            return torch.zeros(shape, dtype=torch.float32, device=dev)
 
         S = sdf.shape[0]
         d_sdf, d_grad, d_col, d_pos = buf(0, (S,)), buf(1, (S, 3)), buf(2, (S, 3)), buf(3, (S, 3))
         d_invs, d_ir, d_ib = buf(4, (1,)), buf(5, (1,)), buf(6, (1,))
-        d_W = torch.zeros(proj_W.shape if needs[7] else (1,), dtype=torch.float32, device=dev)
-        d_q = torch.zeros(q_arr.shape if needs[8] else (1, 3), dtype=torch.float32, device=dev)
-        d_e = torch.zeros(e_arr.shape if needs[9] else (1,), dtype=torch.float32, device=dev)
+        d_W = torch.zeros(proj_W.shape, dtype=torch.float32, device=dev) if needs[7] else _warp.dummy((1,), dev, "render_bwd.W")
+        d_q = torch.zeros(q_arr.shape, dtype=torch.float32, device=dev) if needs[8] else _warp.dummy((1, 3), dev, "render_bwd.q")
+        d_e = torch.zeros(e_arr.shape, dtype=torch.float32, device=dev) if needs[9] else _warp.dummy((1,), dev, "render_bwd.e")
         g_color, g_opacity, g_depth, g_texture = (_f32(g) for g in (g_color, g_opacity, g_depth, g_texture))
         inputs = [
             _wp(sdf), _wp(grad, wp.vec3), _wp(color, wp.vec3), _wp(pos, wp.vec3),

@@ -251,3 +251,67 @@ def test_fused_adam_matches_foreach_update_over_steps(backend):
     assert not bool(ok) and float(a.nonfinite_count()) == 1.0
     a.gated_step(ok)
     assert all(torch.equal(p.detach(), q) for p, q in zip(ours, before))
+
+
+def _multi_case(gen, device, sizes):
+    """Tensors of the given sizes (the hash table and the small heads), some gradients non-finite."""
+    ps, gs, ms, vs = [], [], [], []
+    for n in sizes:
+        g = torch.randn(n, generator=gen) * 1e-2
+        if n > 9:
+            g[3::7] = float("nan")
+        ps.append(torch.randn(n, generator=gen).to(device))
+        gs.append(g.to(device))
+        ms.append((torch.randn(n, generator=gen) * 0.1).to(device))
+        vs.append((torch.rand(n, generator=gen) * 0.01).to(device))
+    return ps, gs, ms, vs
+
+
+@pytest.mark.parametrize("device", _devices())
+@pytest.mark.parametrize("sizes", [(70001, 5, 1, 64 * 33, 3), tuple(range(1, 20)), (1 << 17,)])
+def test_multi_tensor_adam_matches_per_tensor_and_its_twin(device, sizes):
+    """adam_update_multi (one launch for up to MAX_TENSORS tensors; 19 tensors split in two)
+    against one adam_update per tensor and against its torch twin, rows from two groups; the
+    guard off leaves every tensor bit-identical. The multi-tensor count equals the per-tensor sum."""
+    from fastneus.kernels import get_op
+
+    seed = int.from_bytes(os.urandom(4), "little")
+    gen = torch.Generator().manual_seed(seed)
+    ps, gs, ms, vs = _multi_case(gen, device, sizes)
+    rows = [k % 2 for k in range(len(ps))]
+    scal = torch.tensor([[-1e-3, 1.3], [-2e-2, 1.05]], device=device)
+    ok = torch.ones(1, device=device)
+    multi = [[t.clone() for t in lst] for lst in (ps, ms, vs)]
+    get_op("adam_update_multi", "warp")(multi[0], gs, multi[1], multi[2], scal, rows, ok, 0.9, 0.99, 1e-15)
+    one = [[t.clone() for t in lst] for lst in (ps, ms, vs)]
+    for k in range(len(ps)):
+        get_op("adam_update", "warp")(one[0][k], gs[k], one[1][k], one[2][k], scal, rows[k], ok, 0.9, 0.99, 1e-15)
+    twin = [[t.clone() for t in lst] for lst in (ps, ms, vs)]
+    get_op("adam_update_multi", "torch")(twin[0], gs, twin[1], twin[2], scal, rows, ok, 0.9, 0.99, 1e-15)
+    for a, b, c in zip(multi, one, twin):
+        for x, y, z in zip(a, b, c):
+            assert torch.equal(x, y), f"seed {seed}"  # the same arithmetic per element
+            torch.testing.assert_close(x, z, rtol=2e-6, atol=1e-6, msg=f"seed {seed}")
+    assert all(torch.isfinite(x).all() for x in multi[0]) and not torch.equal(multi[0][0], ps[0])
+    off = [[t.clone() for t in lst] for lst in (ps, ms, vs)]
+    get_op("adam_update_multi", "warp")(off[0], gs, off[1], off[2], scal, rows, torch.zeros(1, device=device),
+                                        0.9, 0.99, 1e-15)
+    assert all(torch.equal(x, y) for a, b in zip(off, (ps, ms, vs)) for x, y in zip(a, b))
+    counts = []
+    for backend in ("warp", "torch"):
+        c = torch.full((1,), 1.0, device=device)
+        get_op("adam_nonfinite_multi", backend)(gs, c)
+        counts.append(float(c))
+    assert counts[0] == counts[1] == 1.0 + sum(float((~torch.isfinite(g)).sum()) for g in gs)
+
+
+def test_multi_tensor_adam_refuses_mismatched_lists():
+    from fastneus.kernels import get_op
+
+    p = torch.zeros(4)
+    with pytest.raises(ValueError, match="one entry per tensor"):
+        get_op("adam_update_multi", "warp")([p], [p.clone()], [p.clone()], [], torch.zeros(1, 2), [0],
+                                            torch.ones(1), 0.9, 0.99, 1e-15)
+    with pytest.raises(ValueError, match="must match the parameter"):
+        get_op("adam_update_multi", "warp")([p], [torch.zeros(3)], [p.clone()], [p.clone()], torch.zeros(1, 2), [0],
+                                            torch.ones(1), 0.9, 0.99, 1e-15)

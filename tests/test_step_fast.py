@@ -190,3 +190,26 @@ def test_foreground_prior_in_a_dark_room_pulls_bright_pixels_to_full_opacity(sma
     assert out is not None and float(out["loss"]) > 0
     assert not Trainer(Scene.load(small_scene), load_config("cpu-quick", run[:-3] + ["fg_prior=off"]), tmp_path / "g",
                        "cpu").fg_used
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_unused_kernel_arguments_are_cached_per_site_and_never_during_a_capture(device):
+    """kernels/_warp.dummy: one zeroed tensor per (site, shape, dtype, device), so a step launches
+    no fill for arguments its kernels do not use; two sites never share one (one site's unread
+    writes must not reach another's unread input); a tensor made while a CUDA graph is captured is
+    not kept (it would live in the graph's pool)."""
+    from fastneus.kernels import _warp
+
+    a = _warp.dummy((1, 3), torch.device(device), "test.a")
+    assert a.shape == (1, 3) and a.dtype == torch.float32 and not a.any()
+    assert _warp.dummy((1, 3), torch.device(device), "test.a") is a
+    assert _warp.dummy((1, 3), torch.device(device), "test.b") is not a
+    assert _warp.dummy((1,), torch.device(device), "test.a") is not a
+    assert _warp.dummy((1, 3), torch.device(device), "test.a", dtype=torch.int32).dtype == torch.int32
+    if device == "cuda":
+        g = torch.cuda.CUDAGraph()
+        side = torch.cuda.Stream()
+        with torch.cuda.stream(side):
+            with torch.cuda.graph(g):
+                inside = _warp.dummy((1, 2), torch.device("cuda"), "test.capture")
+        assert inside is not _warp.dummy((1, 2), torch.device("cuda"), "test.capture")

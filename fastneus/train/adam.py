@@ -49,14 +49,16 @@ class Adam:
 
     def use_fused(self, backend: str = "warp") -> None:
         """Do the guarded update (:meth:`gated_step`, :meth:`device_update`) with one fused
-        kernel per tensor (``fastneus.kernels.adam``; ``backend`` "warp" or its "torch" twin)
-        and the NaN/Inf guard with a count of non-finite gradient entries (one read pass),
-        instead of ~14 foreach passes and a norm: ~1.2 ms of a 10-ms captured GPU step went
-        there for the 67-MB hash table. float32 parameters only (others keep the foreach path).
+        kernel launch for all tensors (``fastneus.kernels.adam``; ``backend`` "warp" or its
+        "torch" twin) and the NaN/Inf guard with a count of non-finite gradient entries (one
+        read pass, one launch), instead of ~14 foreach passes and a norm: ~1.2 ms of a 10-ms
+        captured GPU step went there for the 67-MB hash table, and one launch per tensor cost 30
+        launches a step. float32 parameters only (others keep the foreach path).
         """
         from fastneus.kernels import get_op
 
-        self.fused = (get_op("adam_update", backend), get_op("adam_nonfinite", backend))
+        # every tensor of the model in one launch of each (the per-tensor ops stay for tests)
+        self.fused = (get_op("adam_update_multi", backend), get_op("adam_nonfinite_multi", backend))
 
     def _state(self, p: torch.Tensor) -> dict:
         """``p``'s step count and moments, created (zero) on its first update."""
@@ -195,8 +197,7 @@ class Adam:
         if not grads or any(x.dtype != torch.float32 for x in grads):
             return None
         count = torch.zeros(1, device=grads[0].device)
-        for x in grads:
-            self.fused[1](x, count)
+        self.fused[1](grads, count)
         return count
 
     def uniform_steps(self) -> bool:
@@ -218,6 +219,8 @@ class Adam:
             ok: [] bool/float tensor: apply the update (False: parameters and moments unchanged).
         """
         okf = ok.to(torch.float32).reshape(())
+        # fused: the groups' float32 tensors with the same constants go in one launch
+        multi: dict[tuple, tuple[list, list, list, list, list]] = {}
         for gi, g in enumerate(self.param_groups):
             ps = [p for p in g["params"] if p.grad is not None]
             if not ps:
@@ -225,15 +228,17 @@ class Adam:
             b1, b2 = g["betas"]
             dt = ps[0].dtype
             if self.fused is not None and all(p.dtype == torch.float32 for p in ps) and self._scal.dtype == torch.float32:
-                ok1 = okf.reshape(1)
+                lists = multi.setdefault((b1, b2, g["eps"]), ([], [], [], [], []))
                 for p in ps:
                     st = self.state[p]
-                    self.fused[0](p.detach(), p.grad, st["exp_avg"], st["exp_avg_sq"], self._scal, gi, ok1,
-                                  b1, b2, g["eps"])
+                    for lst, x in zip(lists, (p.detach(), p.grad, st["exp_avg"], st["exp_avg_sq"], gi)):
+                        lst.append(x)
                 continue
             _masked_update(ps, [p.grad for p in ps], [self.state[p]["exp_avg"] for p in ps],
                            [self.state[p]["exp_avg_sq"] for p in ps], okf.to(dt), b1, b2, g["eps"],
                            self._scal[gi, 1].to(dt), self._scal[gi, 0].to(dt))
+        for (b1, b2, eps), (ps, gs, ms, vs, rows) in multi.items():
+            self.fused[0](ps, gs, ms, vs, self._scal, rows, okf.reshape(1), b1, b2, eps)
 
     # ------------------------------------------------------------------ checkpoints
     def state_dict(self) -> dict:
