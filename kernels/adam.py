@@ -14,10 +14,11 @@ the same arithmetic, in the same order, as ``_masked_update``; a step with ``w =
 p, m, v bit-identical. ``s`` and ``c`` are read from a device array so a captured CUDA graph
 reads each replay's learning rate. Not differentiable (an optimiser step).
 
-``adam_update_multi`` / ``adam_nonfinite_multi`` do the same for up to ``MAX_TENSORS`` tensors in
-one launch (their addresses and element offsets are kernel arguments, so a captured CUDA graph
-bakes them like any other argument): a model's ~15 parameter tensors cost 2 launches per step
-instead of 30 (the small ones are ~2 us each, launch-bound; perf note 39).
+``adam_update_multi`` / ``adam_nonfinite_multi`` do the same for a list of tensors: each large one
+(the hash table) with the per-tensor kernel, the small ones (the heads, the illumination) up to
+``MAX_TENSORS`` per launch (their addresses and element offsets are kernel arguments, so a captured
+CUDA graph bakes them like any other argument): a model's ~15 parameter tensors cost 4 launches per
+step instead of 30 (a small one's launch is ~2-5 us of device time for a few thousand floats).
 """
 from __future__ import annotations
 
@@ -77,10 +78,39 @@ def _nonfinite_kernel(g: wp.array(dtype=float), count: wp.array(dtype=float)):
 def _which(i: int, offs: _Offs, ntens: int):
     # the tensor holding global element i: the last t with offs[t] <= i (ntens <= MAX_TENSORS)
     t = int(0)
-    for s in range(1, MAX_TENSORS):
+    for s in range(1, MAX_TENSORS):  # unrolled: constant indices keep the argument in registers
         if s < ntens and i >= offs[s]:
             t = s
     return t
+
+
+# Selects with constant indices only: an argument vector indexed by a runtime value is copied to
+# local memory by every thread (18x slower than the per-tensor kernel on an H200, perf note 39).
+@wp.func
+def _pick_ptr(v: _Ptrs, t: int):
+    r = v[0]
+    for s in range(1, MAX_TENSORS):
+        if s == t:
+            r = v[s]
+    return r
+
+
+@wp.func
+def _pick_off(v: _Offs, t: int):
+    r = v[0]
+    for s in range(1, MAX_TENSORS + 1):
+        if s == t:
+            r = v[s]
+    return r
+
+
+@wp.func
+def _pick_row(v: _Rows, t: int):
+    r = v[0]
+    for s in range(1, MAX_TENSORS):
+        if s == t:
+            r = v[s]
+    return r
 
 
 @wp.kernel
@@ -101,13 +131,14 @@ def _adam_multi_kernel(
 ):
     i = wp.tid() + first
     t = _which(i, offs, ntens)
-    n = offs[t + 1] - offs[t]
-    j = i - offs[t]
-    p = wp.array(ptr=pp[t], shape=(n,), dtype=float)
-    g = wp.array(ptr=gp[t], shape=(n,), dtype=float)
-    m = wp.array(ptr=mp[t], shape=(n,), dtype=float)
-    v = wp.array(ptr=vp[t], shape=(n,), dtype=float)
-    row = rows[t]
+    o = _pick_off(offs, t)
+    n = _pick_off(offs, t + 1) - o
+    j = i - o
+    p = wp.array(ptr=_pick_ptr(pp, t), shape=(n,), dtype=float)
+    g = wp.array(ptr=_pick_ptr(gp, t), shape=(n,), dtype=float)
+    m = wp.array(ptr=_pick_ptr(mp, t), shape=(n,), dtype=float)
+    v = wp.array(ptr=_pick_ptr(vp, t), shape=(n,), dtype=float)
+    row = _pick_row(rows, t)
     gi = g[j]
     if not wp.isfinite(gi):
         gi = 0.0
@@ -126,22 +157,26 @@ def _adam_multi_kernel(
 def _nonfinite_multi_kernel(gp: _Ptrs, offs: _Offs, ntens: int, count: wp.array(dtype=float)):
     i = wp.tid()
     t = _which(i, offs, ntens)
-    g = wp.array(ptr=gp[t], shape=(offs[t + 1] - offs[t],), dtype=float)
-    if not wp.isfinite(g[i - offs[t]]):
+    o = _pick_off(offs, t)
+    g = wp.array(ptr=_pick_ptr(gp, t), shape=(_pick_off(offs, t + 1) - o,), dtype=float)
+    if not wp.isfinite(g[i - o]):
         wp.atomic_add(count, 0, 1.0)
 
 
+# tensors this large keep a launch of the per-tensor kernel: a launch costs nothing next to their
+# traffic, and the plain kernel needs no search for its tensor
+OWN_LAUNCH = 1 << 16
+
+
 def _batches(tensors: list) -> list[list[int]]:
-    """Indices of ``tensors`` in launches of at most MAX_TENSORS, each under 2^31 elements
-    (the offsets are int32), empty tensors left out."""
+    """Indices of ``tensors`` smaller than OWN_LAUNCH in launches of at most MAX_TENSORS (their
+    sum stays far below 2^31: the offsets are int32), empty and large tensors left out."""
     out, cur, n = [], [], 0
     for i, t in enumerate(tensors):
         k = t.numel()
-        if k == 0:
+        if k == 0 or k >= OWN_LAUNCH:
             continue
-        if k >= 1 << 31:
-            raise ValueError("adam multi-tensor ops: a tensor of 2^31 elements or more")
-        if cur and (len(cur) == MAX_TENSORS or n + k >= 1 << 31):
+        if cur and len(cur) == MAX_TENSORS:
             out.append(cur)
             cur, n = [], 0
         cur.append(i)
@@ -195,7 +230,8 @@ def _check_multi_count(gs: list, count: torch.Tensor) -> None:
 
 
 def adam_nonfinite_multi(gs: list, count: torch.Tensor) -> None:
-    """:func:`adam_nonfinite` over the tensors ``gs`` in one launch per MAX_TENSORS of them.
+    """:func:`adam_nonfinite` over the tensors ``gs``: the large ones (OWN_LAUNCH) one launch each,
+    the others in one launch per MAX_TENSORS of them.
 
     Args:
         gs: list of any-shape float32 tensors (gradients) on one device.
@@ -203,6 +239,9 @@ def adam_nonfinite_multi(gs: list, count: torch.Tensor) -> None:
     """
     _check_multi_count(gs, count)
     flat = [g.contiguous().reshape(-1) for g in gs]  # kept alive until the launches are queued
+    for g in flat:
+        if g.numel() >= OWN_LAUNCH:
+            adam_nonfinite(g, count)
     for idx in _batches(flat):
         ts = [flat[i] for i in idx]
         offs, n = _offs(ts)
@@ -272,8 +311,9 @@ def adam_update_torch(p: torch.Tensor, g: torch.Tensor, m: torch.Tensor, v: torc
 
 def adam_update_multi(ps: list, gs: list, ms: list, vs: list, scal: torch.Tensor, rows: list, ok: torch.Tensor,
                       b1: float, b2: float, eps: float) -> None:
-    """:func:`adam_update` of the tensors ``ps`` in one launch per MAX_TENSORS of them (on the
-    CPU, one chunked launch over all their elements, split across the threads).
+    """:func:`adam_update` of the tensors ``ps``: each of OWN_LAUNCH elements or more with the
+    per-tensor kernel, the others in one launch per MAX_TENSORS of them (on the CPU a chunked
+    launch over their elements, split across the threads).
 
     Args:
         ps, gs, ms, vs: lists of the parameters, gradients and moments (each as :func:`adam_update`).
@@ -291,6 +331,9 @@ def adam_update_multi(ps: list, gs: list, ms: list, vs: list, scal: torch.Tensor
     gc = [g.contiguous() for g in gs]  # kept alive until the launches are queued
     sc = _warp.to_wp(scal.contiguous().reshape(-1), ctype=True)
     okw = _warp.to_wp(ok.reshape(-1).to(torch.float32).contiguous(), ctype=True)
+    for k, p in enumerate(ps):
+        if p.numel() >= OWN_LAUNCH:
+            adam_update(p, gc[k], ms[k], vs[k], scal, rows[k], ok, b1, b2, eps)
     for idx in _batches(ps):
         sel = [[lst[i] for i in idx] for lst in (ps, gc, ms, vs)]
         offs, n = _offs(sel[0])

@@ -268,9 +268,10 @@ def _multi_case(gen, device, sizes):
 
 
 @pytest.mark.parametrize("device", _devices())
-@pytest.mark.parametrize("sizes", [(70001, 5, 1, 64 * 33, 3), tuple(range(1, 20)), (1 << 17,)])
+@pytest.mark.parametrize("sizes", [(70001, 5, 1, 64 * 33, 3), tuple(range(1, 20)), (1 << 17,), (3000, 1 << 16, 7)])
 def test_multi_tensor_adam_matches_per_tensor_and_its_twin(device, sizes):
-    """adam_update_multi (one launch for up to MAX_TENSORS tensors; 19 tensors split in two)
+    """adam_update_multi (large tensors one launch each, up to MAX_TENSORS small ones per launch;
+    19 tensors split in two)
     against one adam_update per tensor and against its torch twin, rows from two groups; the
     guard off leaves every tensor bit-identical. The multi-tensor count equals the per-tensor sum."""
     from fastneus.kernels import get_op
