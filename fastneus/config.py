@@ -209,6 +209,9 @@ class NetworkSection:
     inv_s_floor_end: float = knob(1000.0, "inv_s floor at the end of its ramp (0 = learned only)", lo=0.0, hi=1e6)
     inv_s_floor_start: float = knob(20.0, "inv_s floor at the start of its ramp", lo=0.0, hi=1e6, lo_open=True)
     inv_s_floor_frac: float = knob(0.6, "the floor rises log-linearly over this fraction of the run", **FRAC)
+    inv_s_floor_per_step: float = knob(0.0, "cap the floor's end at this many times the run's step count "
+                                       "(under a time budget, the count expected at the rate so far): a short run "
+                                       "cannot resolve a surface as sharp as a long one; 0 = off", lo=0.0, hi=1e3)
     normal_eps_min: float = knob(1e-3, "lower bound of the finite-difference step (normalised)", lo=0.0,
                                  lo_open=True)
     sdf_grad: str = knob("analytic", "SDF gradient: analytic (hash d/dx from one kernel) | fd (4-tap tetrahedron)",

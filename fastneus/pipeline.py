@@ -332,12 +332,16 @@ def _train_and_finish(trainer, scene, cfg: Config, out: Path, device: str, conso
     with stop_on_signal(trainer, out):
         last = trainer.fit(final_save=not finish)  # finish_run saves it right after mesh.ply
     # decided during the run (camera_blur=auto, exposure=auto): the decisions and their printed lines
+    floor = trainer.floor_note()
     _update_run_json(out, {"camera_blur": trainer.blur_decision, "camera_blur_note": trainer.blur_note(),
                            "exposure": trainer.exposure_decision, "exposure_note": trainer.exposure_note(),
+                           **({"sharpness_floor": floor} if floor else {}),
                            **({"cuda_graphs": last["cuda_graphs"]} if last and "cuda_graphs" in last else {})})
     if console is not None and last:
         console.print(f"trained {trainer.step} steps in {trainer.elapsed:.1f}s: loss {last['loss']:.4f}, "
                       f"PSNR {last['psnr']:.2f} dB, i_r {last['i_r']:.4f}, i_b {last['i_b']:.4f}")
+        if floor:
+            console.print(floor, soft_wrap=True, highlight=False, markup=False)
     metrics = finish_run(trainer, console, clock=clock, save_checkpoint=True) if finish else {}
     return trainer, metrics
 

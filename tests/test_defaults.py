@@ -73,6 +73,40 @@ def test_same_stages_at_any_budget(tmp_path):
     assert t.progress() == pytest.approx(0.25) and not t.finished()
 
 
+def test_floor_end_follows_the_runs_length_when_asked():
+    """inv_s_floor_per_step caps the sharpness floor's end at that many times the run's steps (set,
+    or expected from the rate so far under a time budget), never below the floor's start; at 0 the
+    end is inv_s_floor_end whatever the length."""
+    from fastneus.field.model import SDFField
+    from fastneus.train.trainer import Trainer
+
+    cfg = load_config("cpu-quick", ["inv_s_floor_end=1000", "inv_s_floor_per_step=0.5", "inv_s_floor_start=20"])
+    field = SDFField(cfg.hashgrid, cfg.network, "cpu", backend=cfg.run.backend)
+    assert field.floor_end(1050) == pytest.approx(525) and field.floor_end(4400) == 1000
+    assert field.floor_end(10) == 20 and field.floor_end(None) == 1000
+    field.set_progress(1.0, 1050)
+    assert field.inv_s_floor == pytest.approx(525)
+    field.set_progress(0.3, 1050)  # half-way up the ramp (frac 0.6): the geometric mean of 20 and 525
+    assert field.inv_s_floor == pytest.approx((20 * 525) ** 0.5)
+    off = SDFField(cfg.hashgrid, load_config("cpu-quick", ["inv_s_floor_end=1000"]).network, "cpu",
+                   backend=cfg.run.backend)
+    off.set_progress(1.0, 1050)
+    assert off.inv_s_floor == pytest.approx(1000)
+
+    class _T:  # steps_expected reads cfg, step and elapsed through progress
+        progress = Trainer.progress
+        steps_expected = Trainer.steps_expected
+
+    t = _T()
+    t.cfg = Config().replace(steps=1000, time_budget=5.0)
+    t.step, t.elapsed = 0, 0.0
+    assert t.steps_expected() is None
+    t.step, t.elapsed = 420, 2.0
+    assert t.steps_expected() == pytest.approx(1050)
+    t.cfg = Config().replace(steps=600, time_budget=0.0)
+    assert t.steps_expected() == 600
+
+
 # ---------------------------------------------------------------- masks and background
 class _Frame:
     def __init__(self, mask):

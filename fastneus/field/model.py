@@ -104,19 +104,31 @@ class SDFField(nn.Module):
             nn.init.normal_(lin.weight, 0.0, math.sqrt(2) / math.sqrt(d_out))
 
     # ------------------------------------------------------------------ geometry
-    def set_progress(self, progress: float) -> None:
+    def floor_end(self, steps_total: float | None = None) -> float:
+        """The sharpness floor's end: ``inv_s_floor_end``, capped at ``inv_s_floor_per_step`` times
+        ``steps_total`` (the run's steps, or those expected) when both are set, never below the
+        floor's start."""
+        c = self.network
+        end = c.inv_s_floor_end
+        if c.inv_s_floor_per_step > 0 and steps_total and steps_total > 0:
+            end = max(c.inv_s_floor_start, min(end, c.inv_s_floor_per_step * steps_total))
+        return end
+
+    def set_progress(self, progress: float, steps_total: float | None = None) -> None:
         """Coarse-to-fine levels and the sharpness floor at ``progress`` in [0, 1] of the run.
 
         Active levels rise linearly from ``c2f_start_levels`` to all levels at ``c2f_frac`` of the
         run; inv_s is kept above a floor rising log-linearly from ``inv_s_floor_start`` to
-        ``inv_s_floor_end`` over the first ``inv_s_floor_frac``: the learned NeuS variance alone
+        :meth:`floor_end` over the first ``inv_s_floor_frac``: the learned NeuS variance alone
         sharpens too slowly for a budget of a few thousand steps. Both are fractions of the run,
-        so a 5-s and a 10-min run pass through the same stages.
+        so a 5-s and a 10-min run pass through the same stages; ``steps_total`` (the run's step
+        count, expected or set) lowers the floor's end of a short run (``inv_s_floor_per_step``).
         """
         c, g = self.network, self.hashgrid
         if c.inv_s_floor_end > 0:
             f = min(1.0, progress / c.inv_s_floor_frac) if c.inv_s_floor_frac > 0 else 1.0
-            self.inv_s_floor = math.exp(math.log(c.inv_s_floor_start) * (1 - f) + math.log(c.inv_s_floor_end) * f)
+            end = self.floor_end(steps_total)
+            self.inv_s_floor = math.exp(math.log(c.inv_s_floor_start) * (1 - f) + math.log(end) * f)
         if g.c2f_start_levels <= 0 or g.c2f_frac <= 0 or g.c2f_start_levels >= g.levels:
             self.active_levels = g.levels
         else:

@@ -412,6 +412,24 @@ class Trainer:
             p = self.step / max(1, self.cfg.run.steps)
         return min(1.0, p)
 
+    def steps_expected(self) -> float | None:
+        """The run's step count: ``steps``, or under a time budget the count expected at the rate
+        so far (steps done / share of the budget used; None before the first step)."""
+        if self.cfg.run.time_budget > 0:
+            p = self.progress()
+            return self.step / p if p > 0 and self.step > 0 else None
+        return float(self.cfg.run.steps)
+
+    def floor_note(self) -> str:
+        """One line on the sharpness floor's end when the run's length sets it (``inv_s_floor_per_step``)."""
+        c = self.cfg.network
+        if c.inv_s_floor_per_step <= 0 or c.inv_s_floor_end <= 0:
+            return ""
+        n = self.steps_expected()
+        end = self.field.floor_end(n)
+        how = f"{c.inv_s_floor_per_step:g} x {n:.0f} steps" if n else "no step yet"
+        return f"sharpness floor: ends at inv_s {end:.0f} ({how}, at most inv_s_floor_end {c.inv_s_floor_end:g})"
+
     def finished(self) -> bool:
         if self.stop_signal is not None:
             return True
@@ -757,7 +775,7 @@ class Trainer:
                 self.console.print(f"foreground flags: the lens's halo left out from step {self.step} "
                                    f"(fg_halo {self.blur_decision['fg_halo']:g})", soft_wrap=True, highlight=False,
                                    markup=False)
-        self.field.set_progress(p)
+        self.field.set_progress(p, self.steps_expected())
         self.update_grid(p)
         self._set_lr(p)
         graphs = self.graphs if self.graphs is not None and self.graphs.eligible(self, p) else None
@@ -1189,7 +1207,7 @@ class Trainer:
             self.exposure_decision, self.exposure_due = dict(e), None
         self.step, self.elapsed = int(st["step"]), float(st.get("elapsed", 0.0))
         self.n_rays, self.skipped = int(st.get("n_rays", self.n_rays)), int(st.get("skipped", 0))
-        self.field.set_progress(self.progress())
+        self.field.set_progress(self.progress(), self.steps_expected())
         if with_optimizer:
             groups = self.opt.param_groups
             if self.log_gain is not None and "log_gain" not in st:  # saved before per-photo exposure: gains 1
