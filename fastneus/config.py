@@ -178,6 +178,10 @@ class HashGridSection:
     levels: int = knob(16, "resolution levels", lo=1, hi=64, model=True)
     features: int = knob(2, "features per level (the hash kernels' limit: 8)", lo=1, hi=8, model=True)
     log2_table: int = knob(19, "log2 of the table entries per level (the kernels' limit: 30)", lo=1, hi=30, model=True)
+    pixels_per_entry: float = knob(0.0, "if > 0: the table's entries per level follow the photos, one per this many "
+                                   "pixels of the distinct viewpoints (a power of two, from 2^17 up to 2^log2_table); "
+                                   "0 = 2^log2_table. Printed and saved (run.json hash_table)", lo=0.0, hi=1e6,
+                                   model=True)
     base_res: int = knob(16, "resolution of the coarsest level", lo=1, model=True)
     finest_res: int = knob(2048, "resolution of the finest level", lo=1, model=True)
     c2f_start_levels: int = knob(4, "coarse-to-fine: active levels at the start (0 = all)", lo=0)

@@ -307,6 +307,7 @@ def _train_and_finish(trainer, scene, cfg: Config, out: Path, device: str, conso
             console.print(trainer.matmul_note())
         console.print(trainer.masks_note)
         console.print(trainer.hull_note)
+        console.print(trainer.table_note, soft_wrap=True, highlight=False, markup=False)
         console.print(trainer.bg_note)
         console.print(trainer.response_note)
         if trainer.level_note:
@@ -328,7 +329,8 @@ def _train_and_finish(trainer, scene, cfg: Config, out: Path, device: str, conso
                                          "exposure": trainer.exposure_decision,
                                          "exposure_note": trainer.exposure_note(),
                                          "occupancy_updates": "near" if trainer.occ_near else "all",
-                                         "occupancy_hull": trainer.hull_note, **provenance()})
+                                         "occupancy_hull": trainer.hull_note, "hash_table": trainer.table_note,
+                                         **provenance()})
     with stop_on_signal(trainer, out):
         last = trainer.fit(final_save=not finish)  # finish_run saves it right after mesh.ply
     # decided during the run (camera_blur=auto, exposure=auto): the decisions and their printed lines

@@ -6,7 +6,9 @@ import numpy as np
 import pytest
 import torch
 
+from conftest import SMALL_RUN
 from fastneus.config import Config, load_config
+from fastneus.data import Scene
 from fastneus.errors import FastneusError
 
 
@@ -105,6 +107,41 @@ def test_floor_end_follows_the_runs_length_when_asked():
     assert t.steps_expected() == pytest.approx(1050)
     t.cfg = Config().replace(steps=600, time_budget=0.0)
     assert t.steps_expected() == 600
+
+
+def test_table_size_follows_the_photos_pixels():
+    """hashgrid.pixels_per_entry: the largest power of two at most pixels / k, never below 2^17 (the
+    smallest measured) nor above 2^log2_table; off (0) or with a smaller log2_table: log2_table. The
+    GPU preset gives 20 views of 200 px 2^17 and keeps 2^19 from ~3.2 M pixels."""
+    from fastneus.field.model import table_log2
+
+    fv = load_config("fewview").hashgrid
+    assert table_log2(fv, 20 * 200 * 200) == 17 and table_log2(fv, 20 * 300 * 300) == 18
+    assert table_log2(fv, 20 * 400 * 400) == 19 and table_log2(fv, 100 * 800 * 800) == 19
+    assert table_log2(fv, 3 * 24 * 24) == 17  # tiny data: the floor
+    assert table_log2(load_config("fewview", ["pixels_per_entry=0"]).hashgrid, 800_000) == 19
+    assert table_log2(load_config("fewview", ["log2_table=15"]).hashgrid, 10 ** 9) == 15
+
+
+def test_trainer_prints_and_saves_the_table_it_chose(small_scene, tmp_path):
+    """The table the trainer builds is the rule's, and its line names the pixels and the rule; a
+    multi-shot view's frames count once (view_pixels)."""
+    from fastneus.train.trainer import Trainer, view_pixels
+
+    scene = Scene.load(small_scene)
+    assert view_pixels(scene, [0, 1, 2]) == 3 * 24 * 24
+    scene2 = Scene.load(small_scene)
+    for f in scene2.frames:
+        f.view = 0  # one viewpoint photographed three times
+    assert view_pixels(scene2, [0, 1, 2]) == 24 * 24
+    cfg = load_config("cpu-quick", SMALL_RUN + ["threads=1", "init_geometry=sphere", "log2_table=17",
+                                                "pixels_per_entry=0.001"])
+    tr = Trainer(scene, cfg, tmp_path / "run", "cpu")
+    assert tr.field.grid_cfg.log2_table == 17 and tr.field.table.shape[1] == 1 << 17
+    assert "2^17 entries per level" in tr.table_note and "0.00 M pixels" in tr.table_note
+    off = Trainer(scene, load_config("cpu-quick", SMALL_RUN + ["threads=1", "init_geometry=sphere"]), tmp_path / "r2",
+                  "cpu")
+    assert off.table_note == "hash table: 2^12 entries per level"
 
 
 # ---------------------------------------------------------------- masks and background

@@ -25,6 +25,26 @@ HIGHLIGHT_BIAS = -6.0  # the highlight output's starting bias: softplus(-6) = 0.
 _TETRA = torch.tensor([[1.0, -1.0, -1.0], [-1.0, -1.0, 1.0], [-1.0, 1.0, -1.0], [1.0, 1.0, 1.0]])
 
 
+# the smallest table fastneus' defaults choose (pixels_per_entry): the smallest one measured (H200, 0.8 M
+# pixels; docs/benchmarks/short-budget-gpu.md, "The hash table's size")
+MIN_AUTO_LOG2_TABLE = 17
+
+
+def table_log2(hashgrid, pixels: int) -> int:
+    """log2 of the table's entries per level: ``log2_table``, or with ``pixels_per_entry`` set, the
+    largest power of two at most ``pixels / pixels_per_entry``, within [MIN_AUTO_LOG2_TABLE, log2_table].
+
+    Args:
+        hashgrid: the config's ``hashgrid`` section.
+        pixels: pixels of the training photos' distinct viewpoints.
+    """
+    top = hashgrid.log2_table
+    if hashgrid.pixels_per_entry <= 0 or pixels <= 0:
+        return top
+    want = int(math.floor(math.log2(max(1.0, pixels / hashgrid.pixels_per_entry))))
+    return max(min(MIN_AUTO_LOG2_TABLE, top), min(top, want))
+
+
 class SDFField(nn.Module):
     """Hash-grid SDF and colour networks in normalised space ([-1, 1]^3).
 
@@ -33,12 +53,16 @@ class SDFField(nn.Module):
         network: the config's ``network`` section (MLP sizes, NeuS sharpness).
         device: torch device.
         backend: kernel backend, ``warp`` or ``torch`` (the twins).
+        log2_table: the table's entries per level (log2), if chosen by the caller (:func:`table_log2`);
+            default ``hashgrid.log2_table``.
     """
 
-    def __init__(self, hashgrid, network, device: torch.device | str = "cpu", backend: str = "warp"):
+    def __init__(self, hashgrid, network, device: torch.device | str = "cpu", backend: str = "warp",
+                 log2_table: int | None = None):
         super().__init__()
         self.hashgrid, self.network = hashgrid, network
-        self.grid_cfg = HashGridConfig(levels=hashgrid.levels, features=hashgrid.features, log2_table=hashgrid.log2_table,
+        lt = hashgrid.log2_table if log2_table is None else int(log2_table)
+        self.grid_cfg = HashGridConfig(levels=hashgrid.levels, features=hashgrid.features, log2_table=lt,
                                        base_res=hashgrid.base_res, finest_res=hashgrid.finest_res)
         self.resolutions = self.grid_cfg.resolutions()
         self.table = nn.Parameter(init_table(self.grid_cfg, device))

@@ -14,7 +14,7 @@ import torch
 
 from fastneus.config import Config, camera_blur_sigma, config_from_dict, save_config
 from fastneus.errors import FastneusError
-from fastneus.field.model import SDFField
+from fastneus.field.model import MIN_AUTO_LOG2_TABLE, SDFField, table_log2
 from fastneus.field.renderer import march_samples, march_samples_capped, pattern_pass_split, shade_samples
 from fastneus.train.geometry_init import fit_batch, grey_photos_note
 from fastneus.io import open_append
@@ -171,6 +171,16 @@ class BudgetSync:
         self.t_sync, self.s_sync = float(elapsed), int(step)
 
 
+def view_pixels(scene, frames: list[int]) -> int:
+    """Pixels of the distinct viewpoints among ``frames`` (a multi-shot sequence's patterns count once:
+    they add light codes, not detail)."""
+    from fastneus.data.scene import view_frames
+
+    firsts = [fs[0] for fs in view_frames(scene, frames).values()]
+    return int(sum(scene.cameras[scene.frames[i].camera].width * scene.cameras[scene.frames[i].camera].height
+                   for i in firsts))
+
+
 class Trainer:
     """Optimises an :class:`SDFField` on a scene.
 
@@ -285,7 +295,16 @@ class Trainer:
                                      camera_blur=self.pattern_blur)
         self.rig = Rig(scene, self.frames, self.bank, self.proj, cfg.rig, self.device,  # real-rig corrections
                        split_patterns=pattern_pass_split(cfg, self.device))
-        self.field = SDFField(cfg.hashgrid, cfg.network, self.device, backend=cfg.run.backend)
+        # the table's size from the photos (hashgrid.pixels_per_entry): 20 views of 200 px fit a 2^17 table
+        # better than 2^19 (docs/benchmarks/short-budget-gpu.md, "The hash table's size")
+        pixels = view_pixels(scene, self.frames)
+        log2_table = table_log2(cfg.hashgrid, pixels)
+        self.table_note = f"hash table: 2^{log2_table} entries per level"
+        if cfg.hashgrid.pixels_per_entry > 0:
+            self.table_note += (f" ({pixels / 1e6:.2f} M pixels of the viewpoints, one entry "
+                                f"per {cfg.hashgrid.pixels_per_entry:g}, within 2^{min(MIN_AUTO_LOG2_TABLE, cfg.hashgrid.log2_table)}"
+                                f"..2^{cfg.hashgrid.log2_table})")
+        self.field = SDFField(cfg.hashgrid, cfg.network, self.device, backend=cfg.run.backend, log2_table=log2_table)
         self.field.init_color_bias(self.bank.mean_rgb())
         self.grid = OccupancyGrid(cfg.occupancy.occ_resolution, self.device)
         self.on_saved = None  # called after each checkpoint write (pipeline.train_scene)
