@@ -22,6 +22,8 @@ step instead of 30 (a small one's launch is ~2-5 us of device time for a few tho
 """
 from __future__ import annotations
 
+from typing import Any
+
 import torch
 import warp as wp
 
@@ -34,9 +36,39 @@ wp.set_module_options({"enable_backward": False})
 MIN_CHUNK = 1 << 16
 # tensors per multi-tensor launch (more are split into several launches)
 MAX_TENSORS = 16
-_Ptrs = wp.types.vector(length=MAX_TENSORS, dtype=wp.uint64)
+# one length for all three (the offsets need MAX_TENSORS + 1), so one generic select serves them
+_Ptrs = wp.types.vector(length=MAX_TENSORS + 1, dtype=wp.uint64)
 _Offs = wp.types.vector(length=MAX_TENSORS + 1, dtype=wp.int32)
-_Rows = wp.types.vector(length=MAX_TENSORS, dtype=wp.int32)
+_Rows = wp.types.vector(length=MAX_TENSORS + 1, dtype=wp.int32)
+
+
+@wp.func
+def _adam_element(
+    p: wp.array(dtype=float),
+    g: wp.array(dtype=float),
+    m: wp.array(dtype=float),
+    v: wp.array(dtype=float),
+    i: int,
+    scal: wp.array(dtype=float),
+    row: int,
+    ok: wp.array(dtype=float),
+    b1: float,
+    b2: float,
+    eps: float,
+):
+    # the maths of the module docstring for element i (both kernels)
+    gi = g[i]
+    if not wp.isfinite(gi):
+        gi = 0.0
+    w = ok[0]
+    mi = m[i]
+    vi = v[i]
+    mi = mi + (gi - mi) * (w * (1.0 - b1))
+    vi = vi + (gi * gi - vi) * (w * (1.0 - b2))
+    m[i] = mi
+    v[i] = vi
+    denom = wp.sqrt(vi) * scal[2 * row + 1] + eps
+    p[i] = p[i] + (mi / denom) * scal[2 * row] * w
 
 
 @wp.kernel
@@ -52,19 +84,7 @@ def _adam_kernel(
     b2: float,
     eps: float,
 ):
-    i = wp.tid()
-    gi = g[i]
-    if not wp.isfinite(gi):
-        gi = 0.0
-    w = ok[0]
-    mi = m[i]
-    vi = v[i]
-    mi = mi + (gi - mi) * (w * (1.0 - b1))
-    vi = vi + (gi * gi - vi) * (w * (1.0 - b2))
-    m[i] = mi
-    v[i] = vi
-    denom = wp.sqrt(vi) * scal[2 * row + 1] + eps
-    p[i] = p[i] + (mi / denom) * scal[2 * row] * w
+    _adam_element(p, g, m, v, wp.tid(), scal, row, ok, b1, b2, eps)
 
 
 @wp.kernel
@@ -84,30 +104,12 @@ def _which(i: int, offs: _Offs, ntens: int):
     return t
 
 
-# Selects with constant indices only: an argument vector indexed by a runtime value is copied to
+# A select with constant indices only: an argument vector indexed by a run-time value is copied to
 # local memory by every thread (18x slower than the per-tensor kernel on an H200, perf note 39).
 @wp.func
-def _pick_ptr(v: _Ptrs, t: int):
+def _pick(v: Any, t: int):
     r = v[0]
-    for s in range(1, MAX_TENSORS):
-        if s == t:
-            r = v[s]
-    return r
-
-
-@wp.func
-def _pick_off(v: _Offs, t: int):
-    r = v[0]
-    for s in range(1, MAX_TENSORS + 1):
-        if s == t:
-            r = v[s]
-    return r
-
-
-@wp.func
-def _pick_row(v: _Rows, t: int):
-    r = v[0]
-    for s in range(1, MAX_TENSORS):
+    for s in range(1, MAX_TENSORS + 1):  # unrolled (a constant bound); every vector has MAX_TENSORS + 1
         if s == t:
             r = v[s]
     return r
@@ -131,34 +133,23 @@ def _adam_multi_kernel(
 ):
     i = wp.tid() + first
     t = _which(i, offs, ntens)
-    o = _pick_off(offs, t)
-    n = _pick_off(offs, t + 1) - o
+    o = _pick(offs, t)
+    n = _pick(offs, t + 1) - o
     j = i - o
-    p = wp.array(ptr=_pick_ptr(pp, t), shape=(n,), dtype=float)
-    g = wp.array(ptr=_pick_ptr(gp, t), shape=(n,), dtype=float)
-    m = wp.array(ptr=_pick_ptr(mp, t), shape=(n,), dtype=float)
-    v = wp.array(ptr=_pick_ptr(vp, t), shape=(n,), dtype=float)
-    row = _pick_row(rows, t)
-    gi = g[j]
-    if not wp.isfinite(gi):
-        gi = 0.0
-    w = ok[0]
-    mi = m[j]
-    vi = v[j]
-    mi = mi + (gi - mi) * (w * (1.0 - b1))
-    vi = vi + (gi * gi - vi) * (w * (1.0 - b2))
-    m[j] = mi
-    v[j] = vi
-    denom = wp.sqrt(vi) * scal[2 * row + 1] + eps
-    p[j] = p[j] + (mi / denom) * scal[2 * row] * w
+    p = wp.array(ptr=_pick(pp, t), shape=(n,), dtype=float)
+    g = wp.array(ptr=_pick(gp, t), shape=(n,), dtype=float)
+    m = wp.array(ptr=_pick(mp, t), shape=(n,), dtype=float)
+    v = wp.array(ptr=_pick(vp, t), shape=(n,), dtype=float)
+    row = _pick(rows, t)
+    _adam_element(p, g, m, v, j, scal, row, ok, b1, b2, eps)
 
 
 @wp.kernel
 def _nonfinite_multi_kernel(gp: _Ptrs, offs: _Offs, ntens: int, count: wp.array(dtype=float)):
     i = wp.tid()
     t = _which(i, offs, ntens)
-    o = _pick_off(offs, t)
-    g = wp.array(ptr=_pick_ptr(gp, t), shape=(_pick_off(offs, t + 1) - o,), dtype=float)
+    o = _pick(offs, t)
+    g = wp.array(ptr=_pick(gp, t), shape=(_pick(offs, t + 1) - o,), dtype=float)
     if not wp.isfinite(g[i - o]):
         wp.atomic_add(count, 0, 1.0)
 
@@ -187,7 +178,7 @@ def _batches(tensors: list) -> list[list[int]]:
 
 
 def _ptrs(ts: list) -> _Ptrs:
-    return _Ptrs(*([t.data_ptr() for t in ts] + [0] * (MAX_TENSORS - len(ts))))
+    return _Ptrs(*([t.data_ptr() for t in ts] + [0] * (MAX_TENSORS + 1 - len(ts))))
 
 
 def _offs(ts: list) -> tuple[_Offs, int]:
@@ -337,7 +328,7 @@ def adam_update_multi(ps: list, gs: list, ms: list, vs: list, scal: torch.Tensor
     for idx in _batches(ps):
         sel = [[lst[i] for i in idx] for lst in (ps, gc, ms, vs)]
         offs, n = _offs(sel[0])
-        rws = _Rows(*([int(rows[i]) for i in idx] + [0] * (MAX_TENSORS - len(idx))))
+        rws = _Rows(*([int(rows[i]) for i in idx] + [0] * (MAX_TENSORS + 1 - len(idx))))
         args = [_ptrs(sel[0]), _ptrs(sel[1]), _ptrs(sel[2]), _ptrs(sel[3]), offs, rws, len(idx), 0, sc, okw,
                 float(b1), float(b2), float(eps)]
         # first (argument 7) = each chunk's first element: the threads split the elements
