@@ -129,16 +129,16 @@ def test_trainer_prints_and_saves_the_table_it_chose(small_scene, tmp_path):
     from fastneus.train.trainer import Trainer, view_pixels
 
     scene = Scene.load(small_scene)
-    assert view_pixels(scene, [0, 1, 2]) == 3 * 24 * 24
+    assert view_pixels(scene, [0, 1, 2]) == (3 * 24 * 24, 3)
     scene2 = Scene.load(small_scene)
     for f in scene2.frames:
         f.view = 0  # one viewpoint photographed three times
-    assert view_pixels(scene2, [0, 1, 2]) == 24 * 24
+    assert view_pixels(scene2, [0, 1, 2]) == (24 * 24, 1)
     cfg = load_config("cpu-quick", SMALL_RUN + ["threads=1", "init_geometry=sphere", "log2_table=17",
                                                 "pixels_per_entry=0.001"])
     tr = Trainer(scene, cfg, tmp_path / "run", "cpu")
     assert tr.field.grid_cfg.log2_table == 17 and tr.field.table.shape[1] == 1 << 17
-    assert "2^17 entries per level" in tr.table_note and "0.00 M pixels" in tr.table_note
+    assert "2^17 entries per level" in tr.table_note and "0.00 M pixels in 3 viewpoints" in tr.table_note
     off = Trainer(scene, load_config("cpu-quick", SMALL_RUN + ["threads=1", "init_geometry=sphere"]), tmp_path / "r2",
                   "cpu")
     assert off.table_note == "hash table: 2^12 entries per level"

@@ -171,14 +171,14 @@ class BudgetSync:
         self.t_sync, self.s_sync = float(elapsed), int(step)
 
 
-def view_pixels(scene, frames: list[int]) -> int:
-    """Pixels of the distinct viewpoints among ``frames`` (a multi-shot sequence's patterns count once:
-    they add light codes, not detail)."""
+def view_pixels(scene, frames: list[int]) -> tuple[int, int]:
+    """(pixels, viewpoints) of the distinct viewpoints among ``frames`` (a multi-shot sequence's
+    patterns count once: they add light codes, not detail)."""
     from fastneus.data.scene import view_frames
 
     firsts = [fs[0] for fs in view_frames(scene, frames).values()]
     return int(sum(scene.cameras[scene.frames[i].camera].width * scene.cameras[scene.frames[i].camera].height
-                   for i in firsts))
+                   for i in firsts)), len(firsts)
 
 
 class Trainer:
@@ -297,11 +297,11 @@ class Trainer:
                        split_patterns=pattern_pass_split(cfg, self.device))
         # the table's size from the photos (hashgrid.pixels_per_entry): 20 views of 200 px fit a 2^17 table
         # better than 2^19 (docs/benchmarks/short-budget-gpu.md, "The hash table's size")
-        pixels = view_pixels(scene, self.frames)
+        pixels, n_views = view_pixels(scene, self.frames)
         log2_table = table_log2(cfg.hashgrid, pixels)
         self.table_note = f"hash table: 2^{log2_table} entries per level"
         if cfg.hashgrid.pixels_per_entry > 0:
-            self.table_note += (f" ({pixels / 1e6:.2f} M pixels of the viewpoints, one entry "
+            self.table_note += (f" ({pixels / 1e6:.2f} M pixels in {n_views} viewpoint{'s' * (n_views != 1)}, one entry "
                                 f"per {cfg.hashgrid.pixels_per_entry:g}, within 2^{min(MIN_AUTO_LOG2_TABLE, cfg.hashgrid.log2_table)}"
                                 f"..2^{cfg.hashgrid.log2_table})")
         self.field = SDFField(cfg.hashgrid, cfg.network, self.device, backend=cfg.run.backend, log2_table=log2_table)
