@@ -104,3 +104,12 @@ def run_on_threads(tasks) -> None:
     from ._warp import run_tasks
 
     run_tasks(list(tasks))
+
+
+def local_threads(n: int):
+    """Context manager: Warp launches from the calling thread use ``n`` CPU threads inside it (the
+    other threads keep the process's count). A training step split into half batches on two threads
+    runs each half's launches unchunked (``fastneus.train.trainer.Trainer``, ``run.split_step``)."""
+    from ._warp import local_threads as _local
+
+    return _local(n)

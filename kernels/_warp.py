@@ -250,9 +250,28 @@ def set_threads(n: int | None) -> int:
     return _threads
 
 
+_local = threading.local()  # a calling thread's own count (local_threads)
+
+
 def get_threads() -> int:
-    """The number of CPU threads the Warp ops use (resolved on first use)."""
+    """The number of CPU threads the Warp ops use (resolved on first use); a thread inside
+    :func:`local_threads` gets its own count."""
+    own = getattr(_local, "threads", None)
+    if own is not None:
+        return own
     return _threads if _threads is not None else set_threads(None)
+
+
+@contextlib.contextmanager
+def local_threads(n: int):
+    """Launches from the calling thread use ``n`` threads in this block (the others keep theirs):
+    a step split over threads (one half batch each, fastneus.train.trainer) launches without chunks."""
+    saved = getattr(_local, "threads", None)
+    _local.threads = max(1, int(n))
+    try:
+        yield
+    finally:
+        _local.threads = saved
 
 
 @contextlib.contextmanager

@@ -213,3 +213,62 @@ def test_unused_kernel_arguments_are_cached_per_site_and_never_during_a_capture(
             with torch.cuda.graph(g):
                 inside = _warp.dummy((1, 2), torch.device("cuda"), "test.capture")
         assert inside is not _warp.dummy((1, 2), torch.device("cuda"), "test.capture")
+
+
+def _split_trainer(small_scene, tmp_path, name, extra=()):
+    from fastneus.train.trainer import Trainer
+
+    cfg = load_config("cpu-quick", SMALL_RUN + ["threads=2", "init_geometry=sphere", "steps=12", "split_step=on", *extra])
+    return Trainer(Scene.load(small_scene), cfg, tmp_path / name, "cpu")
+
+
+def test_split_step_on_two_threads_equals_its_halves_in_turn(small_scene, tmp_path):
+    """run.split_step: the step's two half batches on two threads give bit for bit the parameters
+    of the same halves run one after the other on one thread (two gradients: the same sum in
+    either order), and a second run of the same seed repeats it; off (the default) the step is not
+    split."""
+    import functools
+
+    a = _split_trainer(small_scene, tmp_path, "a")
+    b = _split_trainer(small_scene, tmp_path, "b")
+    c = _split_trainer(small_scene, tmp_path, "c")
+    assert a.split_now(0.5) and b.split_now(0.5)
+    b._split_step = functools.partial(b._split_step, threaded=False)
+    calls = []
+    orig = c._split_step
+    c._split_step = lambda *args, **kw: calls.append(1) or orig(*args, **kw)
+    recs = []
+    for i in range(12):
+        rec = []
+        for tr in (a, b, c):
+            torch.manual_seed(i)  # the march's jitter draws from torch's global generator
+            rec.append(tr.train_step())
+        recs.append(rec)
+    assert len(calls) == 12 and sum(r[0] is not None for r in recs) >= 10
+    for ra, rb, _ in recs:
+        if ra is not None:
+            assert torch.equal(ra["loss"], rb["loss"]) and ra["samples"] == rb["samples"]
+    for (na, pa), (_, pb), (_, pc) in zip(a.field.named_parameters(), b.field.named_parameters(),
+                                          c.field.named_parameters()):
+        assert torch.equal(pa, pb), na  # threads vs in turn
+        assert torch.equal(pa, pc), na  # the same seed again
+    assert not _split_trainer(small_scene, tmp_path, "off", ["split_step=off"]).split_now(0.5)
+    assert load_config("cpu-quick").run.split_step == "off"
+
+
+def test_split_step_reraises_a_halfs_error(small_scene, tmp_path, monkeypatch):
+    """An error in the half run on the second thread reaches the caller (not a silent skip)."""
+    import threading
+
+    tr = _split_trainer(small_scene, tmp_path, "err")
+    step_loss = tr.step_loss
+
+    def failing(*args, **kw):
+        if threading.current_thread().name == "fastneus-half":
+            raise RuntimeError("half failed")
+        return step_loss(*args, **kw)
+
+    monkeypatch.setattr(tr, "step_loss", failing)
+    with pytest.raises(RuntimeError, match="half failed"):
+        for _ in range(6):
+            tr.train_step()

@@ -799,6 +799,8 @@ class Trainer:
         self._set_lr(p)
         graphs = self.graphs if self.graphs is not None and self.graphs.eligible(self, p) else None
         n = graphs.ray_count(self.n_rays) if graphs is not None else self.n_rays
+        if graphs is None and self.split_now(p):
+            return self._split_step(n, p)
         # a replayed graph of the draw and the capped march (graphstep.StepGraphs.drawn): no host work
         # for either, as the ray draw's ~30 small ops and the march's launches were ~1.7 ms of a step's
         # 4.4 ms of host time on an H200 (perf note 37)
@@ -824,13 +826,7 @@ class Trainer:
         # adapt the ray count to the sample budget
         self.n_rays = self._next_ray_count(n, s)
         if s == 0:
-            # an empty grid would stall training for good: re-open it after a few empty steps
-            self.empty_steps += 1
-            if self.empty_steps >= 8:
-                self.grid.update(self.field.sdf, 0.0, c.rays.march_step, warmup=True)
-                self.empty_steps = 0
-            self.step += 1
-            return None
+            return self._empty_step()
         self.empty_steps = 0
         if capped is not None:
             rec = graphs.run_capped(self, *capped, p)
@@ -844,6 +840,98 @@ class Trainer:
             return None
         rec["spr"], rec["samples"] = s / n, s
         return rec
+
+    def split_now(self, p: float) -> bool:
+        """Whether the step at progress ``p`` runs as two half batches on two threads (``run.split_step``).
+
+        On the CPU with 2 threads a step's torch ops are too small to split over the cores (16 k
+        samples: 1.35x the steps of one thread), while two half batches on two threads, each
+        launching unchunked, overlap almost fully (two trainers on two threads: 1.96x the steps of
+        one; the split step 1.5x). Off by default: the realistic dark-room ant without masks came out
+        worse at the same step count (perf note 40). Only where nothing else of the step needs the
+        whole batch: no surface prior (its points come from the run's generator), one ray per pixel
+        (no rays-per-pixel blur)."""
+        return (self.cfg.run.split_step == "on" and self.device.type == "cpu" and self.blur_sub == 1
+                and not self.prior_on(p))
+
+    def _split_step(self, n: int, p: float, threaded: bool = True) -> dict | None:
+        """:meth:`_train_step` after the schedules with the batch as two halves (:meth:`split_now`).
+
+        Both halves are drawn and marched on this thread, in order, from the run's generator (the
+        same seed gives the same run); each half's field, losses and ``0.5 * loss`` backward run on
+        its own thread with unchunked launches; the two gradients add into ``.grad`` (two terms: the
+        same sum in either order); then the one guarded Adam update. The total is the mean of the
+        halves' losses (the full batch's up to their sample counts). ``threaded=False`` runs the
+        halves one after the other on this thread (the reference the tests compare with).
+        """
+        import threading
+
+        from fastneus.kernels import local_threads
+
+        c = self.cfg
+        halves = []
+        for _ in range(2):
+            batch, xr = self.draw(max(1, n // 2), self.gen)
+            smp = march_samples(self.grid.bits, self.grid.resolution, batch["origins"], batch["dirs"], c,
+                                jitter=True, stop=self.grid.stop)
+            halves.append((batch, xr, smp))
+        s = sum(int(h[2]["n_samples"]) for h in halves)
+        self.n_rays = self._next_ray_count(n, s)
+        live = [h for h in halves if int(h[2]["n_samples"]) > 0]
+        if not live:
+            return self._empty_step()
+        self.empty_steps = 0
+        self.opt.zero_grad(set_to_none=True)
+        w = 1.0 / len(live)
+        out: list = [None] * len(live)
+
+        def half(k: int) -> None:
+            try:
+                torch.set_num_threads(1)  # OpenMP's count is per thread: the new one's too
+                with local_threads(1):
+                    loss, terms = self.step_loss(*live[k], p)
+                    (loss * w).backward()
+                out[k] = (loss.detach(), terms)
+            except BaseException as e:  # noqa: BLE001 - re-raised on the calling thread
+                out[k] = e
+
+        other = threading.Thread(target=half, args=(1,), name="fastneus-half") if len(live) > 1 and threaded else None
+        # torch's intra-op threads stay off meanwhile: its small ops only lose to two threads each
+        # splitting them (51 against 34 ms a step on the 2-core VM)
+        torch_threads = torch.get_num_threads()
+        torch.set_num_threads(1)
+        try:
+            if other is not None:
+                other.start()
+            half(0)
+            if other is not None:
+                other.join()
+            elif len(live) > 1:
+                half(1)
+        finally:
+            torch.set_num_threads(torch_threads)
+        for r in out:
+            if isinstance(r, BaseException):
+                raise r
+        loss = sum(r[0] for r in out) * w
+        mean = {k: sum(r[1][k].detach() for r in out) * w for k in ("rgb", "mse", "eik")}
+        stepped = finite_step(self.opt, loss)  # NaN/Inf guard
+        self.rig.fix_gauge()
+        self.step += 1
+        if not stepped:
+            self._skipped += 1
+            return None
+        return {"loss": loss, "l1": mean["rgb"], "mse": mean["mse"], "eik": mean["eik"], "spr": s / n, "samples": s}
+
+    def _empty_step(self) -> None:
+        """A step whose march found no sample: an empty grid would stall training for good, so it is
+        re-opened after a few of them."""
+        self.empty_steps += 1
+        if self.empty_steps >= 8:
+            self.grid.update(self.field.sdf, 0.0, self.cfg.rays.march_step, warmup=True)
+            self.empty_steps = 0
+        self.step += 1
+        return None
 
     def draw(self, n: int, generator: torch.Generator | None) -> tuple[dict, torch.Tensor]:
         """This step's random rays and the eikonal term's uniform points.
