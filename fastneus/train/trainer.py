@@ -847,8 +847,8 @@ class Trainer:
         On the CPU with 2 threads a step's torch ops are too small to split over the cores (16 k
         samples: 1.35x the steps of one thread), while two half batches on two threads, each
         launching unchunked, overlap almost fully (two trainers on two threads: 1.96x the steps of
-        one; the split step 1.5x). Off by default: the realistic dark-room ant without masks came out
-        worse at the same step count (perf note 40). Only where nothing else of the step needs the
+        one; the split step 1.5x). Off by default: it computes what one thread does, and the realistic
+        dark-room ant without masks came out worse with one thread than with two (perf note 40). Only where nothing else of the step needs the
         whole batch: no surface prior (its points come from the run's generator), one ray per pixel
         (no rays-per-pixel blur)."""
         return (self.cfg.run.split_step == "on" and self.device.type == "cpu" and self.blur_sub == 1
@@ -871,7 +871,7 @@ class Trainer:
         c = self.cfg
         halves = []
         for _ in range(2):
-            batch, xr = self.draw(max(1, n // 2), self.gen)
+            batch, xr = self.draw(max(1, n // 2), self.gen, points=max(1, max(256, n // 4) // 2))
             smp = march_samples(self.grid.bits, self.grid.resolution, batch["origins"], batch["dirs"], c,
                                 jitter=True, stop=self.grid.stop)
             halves.append((batch, xr, smp))
@@ -933,14 +933,16 @@ class Trainer:
         self.step += 1
         return None
 
-    def draw(self, n: int, generator: torch.Generator | None) -> tuple[dict, torch.Tensor]:
+    def draw(self, n: int, generator: torch.Generator | None, points: int | None = None) -> tuple[dict, torch.Tensor]:
         """This step's random rays and the eikonal term's uniform points.
 
         Args:
             n: ray count (pixels x ``blur_sub`` rays each); generator: the run's (``self.gen``), or
                 None for the default one (a recorded draw graph: graphstep.StepGraphs.drawn).
+            points: uniform points to draw (default ``max(256, n / 4)``; a half batch of the split
+                step takes half of the whole batch's, so the points weigh as much against the samples).
         Returns:
-            (batch, xr): :meth:`RayBank.sample`'s dict after the rig's corrections, and [max(256, n / 4), 3]
+            (batch, xr): :meth:`RayBank.sample`'s dict after the rig's corrections, and [points, 3]
             uniform points in [-1, 1]^3.
         """
         c, sub = self.cfg, self.blur_sub
@@ -948,7 +950,7 @@ class Trainer:
                                                blur=self.camera_blur if sub > 1 else 0.0, sub=sub))
         # a few uniform points for the eikonal term so the far field stays an SDF; they go through
         # the field in the same call as the samples (one hash + MLP pass instead of two)
-        xr = torch.rand(max(256, n // 4), 3, device=self.device, generator=generator) * 2 - 1
+        xr = torch.rand(max(256, n // 4) if points is None else points, 3, device=self.device, generator=generator) * 2 - 1
         return batch, xr
 
     def _next_ray_count(self, n: int, s: int) -> int:
