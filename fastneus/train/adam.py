@@ -48,16 +48,17 @@ class Adam:
         self.fused = None  # (update op, non-finite count op): see use_fused
 
     def use_fused(self, backend: str = "warp") -> None:
-        """Do the guarded update (:meth:`gated_step`, :meth:`device_update`) with one fused
-        kernel launch for all tensors (``fastneus.kernels.adam``; ``backend`` "warp" or its
-        "torch" twin) and the NaN/Inf guard with a count of non-finite gradient entries (one
-        read pass, one launch), instead of ~14 foreach passes and a norm: ~1.2 ms of a 10-ms
-        captured GPU step went there for the 67-MB hash table, and one launch per tensor cost 30
-        launches a step. float32 parameters only (others keep the foreach path).
+        """Do the guarded update (:meth:`gated_step`, :meth:`device_update`) with fused kernels
+        (``fastneus.kernels.adam``'s multi-tensor ops; ``backend`` "warp" or their "torch" twins:
+        one launch for the hash table, one for all the small tensors) and the NaN/Inf guard with a
+        count of non-finite gradient entries (one read pass, launched the same way), instead of ~14
+        foreach passes and a norm: ~1.2 ms of a 10-ms captured GPU step went there for the 67-MB
+        hash table, and one launch per tensor cost 30 launches a step (perf note 39). float32
+        parameters only (others keep the foreach path).
         """
         from fastneus.kernels import get_op
 
-        # every tensor of the model in one launch of each (the per-tensor ops stay for tests)
+        # the per-tensor ops (adam_update, adam_nonfinite) stay: the multi-tensor ops use them for large tensors
         self.fused = (get_op("adam_update_multi", backend), get_op("adam_nonfinite_multi", backend))
 
     def _state(self, p: torch.Tensor) -> dict:
