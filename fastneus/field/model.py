@@ -45,6 +45,22 @@ def table_log2(hashgrid, pixels: int) -> int:
     return max(min(MIN_AUTO_LOG2_TABLE, top), min(top, want))
 
 
+def table_choice(hashgrid, pixels: int, views: int) -> tuple[int, str]:
+    """(:func:`table_log2`, the printed line saying how it was chosen).
+
+    Args:
+        hashgrid: the config's ``hashgrid`` section.
+        pixels, views: pixels and count of the training photos' distinct viewpoints.
+    """
+    lt = table_log2(hashgrid, pixels)
+    note = f"hash table: 2^{lt} entries per level"
+    if hashgrid.pixels_per_entry > 0:
+        note += (f" ({pixels / 1e6:.2f} M pixels in {views} viewpoint{'s' * (views != 1)}, one entry per "
+                 f"{hashgrid.pixels_per_entry:g}, within 2^{min(MIN_AUTO_LOG2_TABLE, hashgrid.log2_table)}"
+                 f"..2^{hashgrid.log2_table})")
+    return lt, note
+
+
 class SDFField(nn.Module):
     """Hash-grid SDF and colour networks in normalised space ([-1, 1]^3).
 

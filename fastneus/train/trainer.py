@@ -14,7 +14,7 @@ import torch
 
 from fastneus.config import Config, camera_blur_sigma, config_from_dict, save_config
 from fastneus.errors import FastneusError
-from fastneus.field.model import MIN_AUTO_LOG2_TABLE, SDFField, table_log2
+from fastneus.field.model import SDFField, table_choice
 from fastneus.field.renderer import march_samples, march_samples_capped, pattern_pass_split, shade_samples
 from fastneus.train.geometry_init import fit_batch, grey_photos_note
 from fastneus.io import open_append
@@ -297,13 +297,7 @@ class Trainer:
                        split_patterns=pattern_pass_split(cfg, self.device))
         # the table's size from the photos (hashgrid.pixels_per_entry): 20 views of 200 px fit a 2^17 table
         # better than 2^19 (docs/benchmarks/short-budget-gpu.md, "The hash table's size")
-        pixels, n_views = view_pixels(scene, self.frames)
-        log2_table = table_log2(cfg.hashgrid, pixels)
-        self.table_note = f"hash table: 2^{log2_table} entries per level"
-        if cfg.hashgrid.pixels_per_entry > 0:
-            self.table_note += (f" ({pixels / 1e6:.2f} M pixels in {n_views} viewpoint{'s' * (n_views != 1)}, one entry "
-                                f"per {cfg.hashgrid.pixels_per_entry:g}, within 2^{min(MIN_AUTO_LOG2_TABLE, cfg.hashgrid.log2_table)}"
-                                f"..2^{cfg.hashgrid.log2_table})")
+        log2_table, self.table_note = table_choice(cfg.hashgrid, *view_pixels(scene, self.frames))
         self.field = SDFField(cfg.hashgrid, cfg.network, self.device, backend=cfg.run.backend, log2_table=log2_table)
         self.field.init_color_bias(self.bank.mean_rgb())
         self.grid = OccupancyGrid(cfg.occupancy.occ_resolution, self.device)
@@ -848,9 +842,9 @@ class Trainer:
         samples: 1.35x the steps of one thread), while two half batches on two threads, each
         launching unchunked, overlap almost fully (two trainers on two threads: 1.96x the steps of
         one; the split step 1.5x). Off by default: it computes what one thread does, and the realistic
-        dark-room ant without masks came out worse with one thread than with two (perf note 40). Only where nothing else of the step needs the
-        whole batch: no surface prior (its points come from the run's generator), one ray per pixel
-        (no rays-per-pixel blur)."""
+        dark-room ant without masks came out worse with one thread than with two (perf note 40).
+        Only where nothing else of the step needs the whole batch: no surface prior (its points come
+        from the run's generator), one ray per pixel (no rays-per-pixel blur)."""
         return (self.cfg.run.split_step == "on" and self.device.type == "cpu" and self.blur_sub == 1
                 and not self.prior_on(p))
 
@@ -914,14 +908,14 @@ class Trainer:
             if isinstance(r, BaseException):
                 raise r
         loss = sum(r[0] for r in out) * w
-        mean = {k: sum(r[1][k].detach() for r in out) * w for k in ("rgb", "mse", "eik")}
         stepped = finite_step(self.opt, loss)  # NaN/Inf guard
         self.rig.fix_gauge()
         self.step += 1
         if not stepped:
             self._skipped += 1
             return None
-        return {"loss": loss, "l1": mean["rgb"], "mse": mean["mse"], "eik": mean["eik"], "spr": s / n, "samples": s}
+        terms = {k: sum(r[1][k].detach() for r in out) * w for k in ("rgb", "mse", "eik")}  # the halves' mean
+        return {**self._record(loss, terms), "spr": s / n, "samples": s}
 
     def _empty_step(self) -> None:
         """A step whose march found no sample: an empty grid would stall training for good, so it is
@@ -1003,6 +997,11 @@ class Trainer:
         elif not finite_step(self.opt, loss):  # NaN/Inf guard
             self._skipped += 1
             return None
+        return self._record(loss, terms)
+
+    @staticmethod
+    def _record(loss: torch.Tensor, terms: dict) -> dict:
+        """A step's scalars for logging (tensors): the total, its L1 and MSE, the eikonal term."""
         return {"loss": loss.detach(), "l1": terms["rgb"].detach(), "mse": terms["mse"], "eik": terms["eik"]}
 
     def step_loss(self, batch: dict, xr: torch.Tensor, smp: dict, p: float,
