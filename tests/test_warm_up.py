@@ -78,7 +78,7 @@ def _check(scene_dir, tmp_path, device):
         torch.testing.assert_close(torch.tensor(losses["a"]), torch.tensor(losses["b"]), rtol=1e-4, atol=1e-6)
 
 
-def test_prime_warms_up_on_cuda_only(small_scene, tmp_path, monkeypatch):
+def test_prime_skips_the_warm_up_on_the_cpu(small_scene, tmp_path, monkeypatch):
     """On the CPU there is no lazy loading to move out of the budget: prime does not warm up."""
     from fastneus.train.trainer import Trainer
 
