@@ -76,8 +76,8 @@ class RunSection:
     split_step: str = knob("off", "CPU: each step's rays as two half batches, field, losses and backward of each on "
                            "its own thread, one Adam update (where the step allows it: no surface prior, one ray per "
                            "pixel): ~1.5x the steps of one thread instead of ~1.35x on 2 cores; it computes what one "
-                           "thread does, and the thin-legged ant tips on that rounding both ways (a lost leg in "
-                           "runs of either thread count; docs/perf-notes/2026-11-30-split-step-cpu.md)", choices=("off", "on"))
+                           "thread does: over 49 fresh seeds of two thin-legged ant cells it came out better on 18, "
+                           "~0.2 mm worse on average (docs/perf-notes/2026-11-30-split-step-cpu.md)", choices=("off", "on"))
     cuda_graph: str = knob("auto", "replay the step after marching as a captured CUDA graph where nothing in it "
                            "changes but the inputs (auto/on: on CUDA; off: always eager)", choices=("auto", "on", "off"))
     matmul: str = knob("auto", "float32 matrix products of the training step (the small networks): tf32 (tensor "
