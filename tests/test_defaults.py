@@ -70,6 +70,11 @@ def test_same_stages_at_any_budget(tmp_path):
     assert t.progress() == pytest.approx(0.5) and not t.finished()
     t.elapsed = 10.0
     assert t.progress() == 1.0 and t.finished()
+    # a budget spent before the first step (a slow machine's setup) still trains one step
+    t.step, t.elapsed = 0, 12.0
+    assert not t.finished()
+    t.step = 1
+    assert t.finished()
     t.cfg = Config().replace(steps=200, time_budget=0.0)
     t.step = 50
     assert t.progress() == pytest.approx(0.25) and not t.finished()

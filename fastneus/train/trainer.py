@@ -444,10 +444,14 @@ class Trainer:
         return f"sharpness floor: ends at inv_s {end:.0f} ({how}, at most inv_s_floor_end {c.inv_s_floor_end:g})"
 
     def finished(self) -> bool:
+        """Whether the run has reached its length (or was asked to stop). A time-budgeted run trains
+        at least one step: on a slow or busy machine its setup (a geometry initialisation counts as
+        training) can spend a short budget before any step, and a mesh of the untrained field is
+        no result."""
         if self.stop_signal is not None:
             return True
         if self.cfg.run.time_budget > 0:
-            return self.elapsed >= self.cfg.run.time_budget
+            return self.step > 0 and self.elapsed >= self.cfg.run.time_budget
         return self.step >= self.cfg.run.steps
 
     def _set_lr(self, p: float) -> None:
