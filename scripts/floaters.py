@@ -106,7 +106,8 @@ def pieces(scene_dir: Path, run: Path, tau_mm: float | None = None, inside_sampl
     dist = tree.query(centres, k=1, workers=-1)[0]
     area = rec.area_faces
     far = dist > tau
-    total_err = float((area * dist).sum())
+    w = area * dist  # each face's share of the area-weighted rec->GT error
+    total_err = float(w.sum())
     # edge-connected components of the far faces
     adj = rec.face_adjacency
     keep = far[adj[:, 0]] & far[adj[:, 1]]
@@ -125,7 +126,6 @@ def pieces(scene_dir: Path, run: Path, tau_mm: float | None = None, inside_sampl
             idx, inside_samples, replace=False, p=area[idx] / area[idx].sum())
         sampled[pick] = True
         inside[pick] = winding_number(gt, centres[pick]) > 0.5
-    w = area * dist
     out = []
     for lab in np.unique(labels[far]):
         sel = far & (labels == lab)
@@ -134,25 +134,26 @@ def pieces(scene_dir: Path, run: Path, tau_mm: float | None = None, inside_sampl
         cov, seen = mask_cover(masks, c)
         out.append({
             "faces": int(sel.sum()), "area_cm2": a * 1e4,
-            "error_share": float((area[sel] * dist[sel]).sum()) / max(total_err, 1e-18),
+            "error_share": _share(w, sel, np.ones_like(sel)),
             "centroid_m": [round(float(x), 4) for x in c],
             "mean_mm": float(dist[sel].mean() * 1000), "max_mm": float(dist[sel].max() * 1000),
             "attached": bool(near_nb[sel].any()), "masks_covering": cov, "masks_seeing": seen,
             "inside_share": _share(w, sel & sampled & inside, sel & sampled),
         })
     out.sort(key=lambda p: -p["error_share"])
-    rec2gt = float((area * dist).sum() / max(area.sum(), 1e-18) * 1000)
+    rec2gt = total_err / max(float(area.sum()), 1e-18) * 1000
     return {"run": str(run), "scene": str(scene_dir), "tau_mm": tau * 1000, "rec2gt_area_weighted_mm": rec2gt,
             "far_area_share": float(area[far].sum() / max(area.sum(), 1e-18)),
-            "far_error_share": float((area[far] * dist[far]).sum() / max(total_err, 1e-18)),
+            "far_error_share": _share(w, far, np.ones_like(far)),
             "far_inside_error_share": _share(w, sampled & inside, sampled), "inside_sampled": int(sampled.sum()),
             "pieces": out}
 
 
 def _share(w: np.ndarray, part: np.ndarray, whole: np.ndarray) -> float | None:
     """Share of ``w`` on ``part`` within ``whole`` (None where ``whole`` is empty)."""
-    tot = float(w[whole].sum())
-    return None if not whole.any() else float(w[part].sum()) / max(tot, 1e-18)
+    if not whole.any():
+        return None
+    return float(w[part].sum()) / max(float(w[whole].sum()), 1e-18)
 
 
 def main(argv: list[str] | None = None) -> None:
