@@ -1,0 +1,251 @@
+"""Empty pockets in a run's field: how deep they go, which cameras see into them, what filling them would change.
+
+A realistic capture without masks leaves the lit-room ant with surface inside the object
+(``scripts/floaters.py``: 73 % of its far error lies inside the GT solid). This script answers the
+next questions on the field itself, from a dense SDF grid:
+
+- **where**: the positive (empty) grid nodes inside the GT solid and deeper than ``--depth-mm``
+  below its surface, their volume and their spread along each axis;
+- **seen?**: for each of those nodes, how many training views have it in frame and how many see it
+  (it lies in front of the first surface along the camera's ray, from per-view depth maps marched
+  through the same grid). A pocket no camera sees could be filled after training for free;
+  one that some views see into is open to the outside;
+- **hidden space**: positive nodes inside the unit ball that some view frames and none sees;
+- **filling narrow pockets**: the positive nodes that the outside cannot reach once openings
+  narrower than a ball of ``r`` grid cells are closed (a morphological closing used only to decide
+  reachability), set negative, and the mesh's Chamfer / F-score against the GT for each ``r``.
+
+Usage::
+
+    python scripts/pockets.py SCENE RUN [--res 256] [--save-grid G.npz] [--json OUT]
+    python scripts/pockets.py SCENE --grid G.npz          # a grid saved earlier (e.g. on a GPU machine)
+
+The grid is ``fastneus.export.mesh.sdf_grid`` of the run's field with the run's clamps (bound and
+the views' volume), saved clipped to +-0.05 (normalised units) as int16: near the surface that is
+1.5e-6 per step; pockets and their walls lie well inside that band.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+import torch
+
+CLIP = 0.05  # normalised SDF units kept in a saved grid (beyond: saturated)
+
+
+# ----------------------------------------------------------------------------- the grid
+def save_grid(path: Path, grid: np.ndarray, frames: list[int]) -> None:
+    """[N, N, N] float SDF (indexed [x, y, z], nodes of linspace(-1, 1, N)) as clipped int16 + the frames."""
+    q = (np.clip(grid, -CLIP, CLIP) * (32767 / CLIP)).round().astype(np.int16)
+    np.savez_compressed(path, sdf=q, frames=np.asarray(frames, dtype=np.int64))
+
+
+def load_grid(path: Path) -> tuple[np.ndarray, list[int]]:
+    """The grid and training frames of :func:`save_grid` (no pickles: plain arrays only)."""
+    with np.load(path, allow_pickle=False) as z:
+        g = z["sdf"]
+        if g.dtype != np.int16 or g.ndim != 3 or len(set(g.shape)) != 1:
+            raise SystemExit(f"{path}: sdf must be an int16 N^3 grid, got {g.dtype} {g.shape}")
+        return g.astype(np.float32) * (CLIP / 32767), [int(x) for x in z["frames"]]
+
+
+def run_grid(run: Path, res: int, device: str) -> tuple[np.ndarray, list[int], object]:
+    """The dense SDF grid of a run folder's field (its checkpoint), the training frames and the scene."""
+    from fastneus.export.mesh import sdf_grid
+    from fastneus.pipeline import open_run
+
+    scene, tr = open_run(str(run), device)
+    g = sdf_grid(tr.field, res, device, bound=tr.cfg.rays.bound, allowed=tr.seen)
+    return g, list(tr.frames), scene
+
+
+def _world(scene, idx: np.ndarray, n: int) -> np.ndarray:
+    """[M, 3] grid node subscripts -> world positions [M, 3]."""
+    S = scene.normalisation()
+    return (-1.0 + idx * (2.0 / (n - 1))) * S[0, 0] + S[:3, 3]
+
+
+# ----------------------------------------------------------------------------- visibility
+@torch.no_grad()
+def depth_maps(grid: np.ndarray, scene, frames: list[int], steps: int = 768, chunk: int = 4096) -> dict[int, np.ndarray]:
+    """Per view, the camera-z depth [H, W] of the first node of negative SDF along each pixel-centre
+    ray inside the unit ball (inf where the ray meets none), trilinear in ``grid``."""
+    G = torch.from_numpy(np.ascontiguousarray(grid.transpose(2, 1, 0)))[None, None]  # grid_sample: [z, y, x]
+    S = scene.normalisation()
+    c, r = S[:3, 3], S[0, 0]
+    out = {}
+    for i in frames:
+        cam = scene.frame_camera(i)
+        c2w = np.asarray(scene.cam_to_world(i), dtype=np.float64)
+        v, u = np.mgrid[0:cam.height, 0:cam.width] + 0.5
+        d = np.stack([(u - cam.K[0, 2]) / cam.K[0, 0], (v - cam.K[1, 2]) / cam.K[1, 1], np.ones_like(u)], -1)
+        dn = d.reshape(-1, 3) @ c2w[:3, :3].T / r   # normalised units per unit of camera z
+        o = (c2w[:3, 3] - c) / r
+        a, b, cc = (dn * dn).sum(1), 2 * dn @ o, o @ o - 1.0
+        disc = b * b - 4 * a * cc
+        sq = np.sqrt(np.maximum(disc, 0.0))
+        t0, t1 = np.maximum((-b - sq) / (2 * a), 0.0), (-b + sq) / (2 * a)
+        hit = (disc > 0) & (t1 > t0)
+        ts = torch.linspace(0.0, 1.0, steps, dtype=torch.float64)
+        depth = np.full(len(a), np.inf)
+        hits = np.nonzero(hit)[0]
+        for k in range(0, len(hits), chunk):
+            sel = hits[k:k + chunk]
+            T = torch.from_numpy(t0[sel])[:, None] + torch.from_numpy(t1[sel] - t0[sel])[:, None] * ts[None]
+            p = torch.from_numpy(o)[None, None] + T[..., None] * torch.from_numpy(dn[sel])[:, None]
+            f = torch.nn.functional.grid_sample(G, p.float()[None, None], align_corners=True,
+                                                padding_mode="border")[0, 0, 0]
+            neg = f < 0
+            first = neg.float().argmax(1)
+            dd = T.gather(1, first[:, None])[:, 0].numpy()
+            depth[sel] = np.where(neg.any(1).numpy(), dd, np.inf)
+        out[i] = depth.reshape(cam.height, cam.width)
+    return out
+
+
+def view_counts(world: np.ndarray, scene, frames: list[int], depth: dict[int, np.ndarray],
+                margin: float) -> tuple[np.ndarray, np.ndarray]:
+    """For points [M, 3] (world): in how many views each is in frame, and in how many it is seen
+    (its camera z at most its pixel's first-surface depth + ``margin``, world units)."""
+    from fastneus.train.visibility import _project
+
+    framed = np.zeros(len(world), dtype=np.int64)
+    seen = np.zeros(len(world), dtype=np.int64)
+    pts = torch.from_numpy(np.asarray(world, dtype=np.float64))
+    for i in frames:
+        cam = scene.frame_camera(i)
+        uv, zc, _ = _project(scene, i, pts, 0.0)
+        uv, zc = uv.numpy(), zc.numpy()
+        ui, vi = np.floor(uv[:, 0]).astype(np.int64), np.floor(uv[:, 1]).astype(np.int64)
+        ok = (zc > 1e-6) & (ui >= 0) & (ui < cam.width) & (vi >= 0) & (vi < cam.height)
+        d = np.full(len(world), -np.inf)
+        d[ok] = depth[i][vi[ok], ui[ok]]
+        framed += ok
+        seen += ok & (zc <= d + margin)
+    return framed, seen
+
+
+# ----------------------------------------------------------------------------- pockets
+def _ball(n: int) -> np.ndarray:
+    lin = np.linspace(-1.0, 1.0, n)
+    return (lin[:, None, None] ** 2 + lin[None, :, None] ** 2 + lin[None, None, :] ** 2) < 1.0
+
+
+def narrow_pockets(grid: np.ndarray, radius: int) -> np.ndarray:
+    """[N, N, N] bool: positive nodes the outside of the unit ball cannot reach once the solid
+    (negative nodes) is closed by a ball of ``radius`` nodes (0: enclosed voids only). The closing
+    only decides reachability: the nodes it fills itself (an opening, a concave corner) are not
+    marked, so the solid is not grown anywhere but inside the cavities."""
+    from scipy import ndimage
+
+    solid = grid < 0
+    if radius > 0:
+        a = np.arange(-radius, radius + 1)
+        k = (a[:, None, None] ** 2 + a[None, :, None] ** 2 + a[None, None, :] ** 2) <= radius * radius
+        solid_c = ndimage.binary_closing(solid, structure=k, border_value=0)
+    else:
+        solid_c = solid
+    lab, _ = ndimage.label(~solid_c)
+    outside = ~_ball(grid.shape[0])
+    reach = np.unique(lab[outside & ~solid_c])
+    # the cavities only: nodes the closing itself filled (a mouth, or a concave corner outside) stay as they are
+    return (lab > 0) & ~np.isin(lab, reach[reach > 0])
+
+
+def mesh_metrics(grid: np.ndarray, scene, frames: list[int]) -> dict:
+    """Marching cubes of the grid (world units, the export's small-piece filter) against the GT."""
+    import trimesh
+    from skimage.measure import marching_cubes
+
+    from fastneus.eval.metrics import geometry_metrics
+    from fastneus.export.mesh import keep_large_components
+
+    n = grid.shape[0]
+    h = 2.0 / (n - 1)
+    v, f, _, _ = marching_cubes(grid, 0.0, spacing=(h, h, h))
+    S = scene.normalisation()
+    v, f = keep_large_components((v - 1.0) * S[0, 0] + S[:3, 3], np.ascontiguousarray(f[:, ::-1]), 0.02)
+    m = geometry_metrics(trimesh.Trimesh(v, f, process=False), scene, frames)
+    return {k: round(float(m[k]), 3) for k in ("chamfer_gt2rec_mm", "chamfer_rec2gt_mm", "chamfer_sym_mm", "fscore")
+            if k in m}
+
+
+def analyse(scene, grid: np.ndarray, frames: list[int], depth_mm: float = 10.0, closings=(0, 1, 2, 3),
+            margin_cells: float = 1.0) -> dict:
+    """Everything the module docstring lists, as one JSON-able dict."""
+    import trimesh
+    from scipy.spatial import cKDTree
+
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    from floaters import winding_number
+
+    n = grid.shape[0]
+    S = scene.normalisation()
+    cell = 2.0 / (n - 1) * S[0, 0]
+    depth = depth_maps(grid, scene, frames)
+    res: dict = {"resolution": n, "cell_mm": round(cell * 1000, 2), "margin_mm": round(margin_cells * cell * 1000, 2)}
+    # hidden space: positive nodes inside the ball that a view frames and none sees
+    idx = np.argwhere((grid > 0) & _ball(n))
+    framed, seen = view_counts(_world(scene, idx, n), scene, frames, depth, margin_cells * cell)
+    res["hidden_positive_nodes"] = int(((framed > 0) & (seen == 0)).sum())
+    if scene.gt_mesh:
+        gt = trimesh.load(scene.path(scene.gt_mesh), force="mesh", process=False)
+        pos = np.argwhere(grid > 1e-3)
+        w = _world(scene, pos, n)
+        lo, hi = gt.bounds
+        w = w[np.all((w > lo) & (w < hi), 1)]
+        ins = w[winding_number(gt, w) > 0.5]
+        d, _ = cKDTree(gt.sample(300000)).query(ins)
+        deep = ins[d > depth_mm / 1000]
+        f2, s2 = view_counts(deep, scene, frames, depth, margin_cells * cell)
+        res["inside_gt"] = {
+            "depth_mm": depth_mm, "nodes": int(len(deep)), "volume_cm3": round(len(deep) * cell ** 3 * 1e6, 1),
+            "axis_percentiles_5_50_95_m": np.round(np.percentile(deep, [5, 50, 95], axis=0), 3).T.tolist() if len(deep) else [],
+            "views_framing_hist": np.bincount(f2, minlength=len(frames) + 1).tolist(),
+            "views_seeing_hist": np.bincount(s2, minlength=len(frames) + 1).tolist()}
+        res["fill"] = []
+        for r in closings:
+            pk = narrow_pockets(grid, r)
+            filled = np.where(pk, -np.abs(grid) - 1e-4, grid)
+            res["fill"].append({"radius_cells": r, "radius_mm": round(r * cell * 1000, 1), "filled_nodes": int(pk.sum()),
+                                **mesh_metrics(filled, scene, frames)})
+    return res
+
+
+def main(argv: list[str] | None = None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("scene", type=Path)
+    ap.add_argument("run", type=Path, nargs="?", help="run folder (its checkpoint); or --grid")
+    ap.add_argument("--grid", type=Path, help="a grid saved by --save-grid")
+    ap.add_argument("--save-grid", type=Path, help="write the run's grid here and stop")
+    ap.add_argument("--res", type=int, default=256)
+    ap.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
+    ap.add_argument("--depth-mm", type=float, default=10.0)
+    ap.add_argument("--closing", default="0,1,2,3", help="closing radii in grid cells")
+    ap.add_argument("--json", type=Path)
+    a = ap.parse_args(argv)
+    from fastneus.data import Scene
+
+    if (a.run is None) == (a.grid is None):
+        raise SystemExit("give a run folder or --grid, not both")
+    if a.grid is not None:
+        grid, frames = load_grid(a.grid)
+        scene = Scene.load(a.scene)
+    else:
+        grid, frames, scene = run_grid(a.run, a.res, a.device)
+        if a.save_grid:
+            save_grid(a.save_grid, grid, frames)
+            print(f"grid {grid.shape[0]}^3 -> {a.save_grid}")
+            return
+    res = analyse(scene, grid, frames, a.depth_mm, [int(x) for x in a.closing.split(",") if x.strip()])
+    print(json.dumps(res, indent=1))
+    if a.json:
+        a.json.write_text(json.dumps(res, indent=1))
+
+
+if __name__ == "__main__":
+    main()
