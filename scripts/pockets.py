@@ -136,13 +136,19 @@ def _ball(n: int) -> np.ndarray:
 
 
 def narrow_pockets(grid: np.ndarray, radius: int) -> np.ndarray:
-    """[N, N, N] bool: positive nodes the outside of the unit ball cannot reach once the solid
-    (negative nodes) is closed by a ball of ``radius`` nodes (0: enclosed voids only). The closing
-    only decides reachability: the nodes it fills itself (an opening, a concave corner) are not
-    marked, so the solid is not grown anywhere but inside the cavities."""
+    """[N, N, N] bool: positive nodes behind openings narrower than a ball of ``radius`` nodes
+    (0: enclosed voids only).
+
+    The solid (negative nodes) is closed by that ball only to decide what the outside reaches:
+    the free nodes still connected to the outside of the unit ball after the closing are the
+    exterior. A free node is a pocket when the exterior is more than ``radius`` steps away
+    through free space, so the closing's own fill near the exterior (a concave corner, a shallow
+    dent, an opening's first ``radius`` nodes) is never marked and the solid is not grown there.
+    """
     from scipy import ndimage
 
     solid = grid < 0
+    free = ~solid
     if radius > 0:
         a = np.arange(-radius, radius + 1)
         k = (a[:, None, None] ** 2 + a[None, :, None] ** 2 + a[None, None, :] ** 2) <= radius * radius
@@ -152,8 +158,10 @@ def narrow_pockets(grid: np.ndarray, radius: int) -> np.ndarray:
     lab, _ = ndimage.label(~solid_c)
     outside = ~_ball(grid.shape[0])
     reach = np.unique(lab[outside & ~solid_c])
-    # the cavities only: nodes the closing itself filled (a mouth, or a concave corner outside) stay as they are
-    return (lab > 0) & ~np.isin(lab, reach[reach > 0])
+    ext = np.isin(lab, reach[reach > 0])
+    if radius > 0:  # the exterior grown by ``radius`` steps through free space
+        ext = ndimage.binary_dilation(ext, ndimage.generate_binary_structure(3, 1), iterations=radius, mask=free)
+    return free & ~ext
 
 
 def mesh_metrics(grid: np.ndarray, scene, frames: list[int]) -> dict:
@@ -175,31 +183,34 @@ def mesh_metrics(grid: np.ndarray, scene, frames: list[int]) -> dict:
 
 
 def analyse(scene, grid: np.ndarray, frames: list[int], depth_mm: float = 10.0, closings=(0, 1, 2, 3),
-            margin_cells: float = 1.0) -> dict:
-    """Everything the module docstring lists, as one JSON-able dict."""
+            margin_cells: float = 1.0, views: bool = True) -> dict:
+    """Everything the module docstring lists, as one JSON-able dict (``views`` False: the fill only)."""
     import trimesh
     from scipy.spatial import cKDTree
 
     sys.path.insert(0, str(Path(__file__).resolve().parent))
     from floaters import winding_number
 
+    from fastneus.eval.metrics import sample_surface
+
     n = grid.shape[0]
     S = scene.normalisation()
     cell = 2.0 / (n - 1) * S[0, 0]
-    depth = depth_maps(grid, scene, frames)
     res: dict = {"resolution": n, "cell_mm": round(cell * 1000, 2), "margin_mm": round(margin_cells * cell * 1000, 2)}
-    # hidden space: positive nodes inside the ball that a view frames and none sees
-    idx = np.argwhere((grid > 0) & _ball(n))
-    framed, seen = view_counts(_world(scene, idx, n), scene, frames, depth, margin_cells * cell)
-    res["hidden_positive_nodes"] = int(((framed > 0) & (seen == 0)).sum())
-    if scene.gt_mesh:
+    if views:
+        depth = depth_maps(grid, scene, frames)
+        # hidden space: positive nodes inside the ball that a view frames and none sees
+        idx = np.argwhere((grid > 0) & _ball(n))
+        framed, seen = view_counts(_world(scene, idx, n), scene, frames, depth, margin_cells * cell)
+        res["hidden_positive_nodes"] = int(((framed > 0) & (seen == 0)).sum())
+    if views and scene.gt_mesh:
         gt = trimesh.load(scene.path(scene.gt_mesh), force="mesh", process=False)
         pos = np.argwhere(grid > 1e-3)
         w = _world(scene, pos, n)
         lo, hi = gt.bounds
         w = w[np.all((w > lo) & (w < hi), 1)]
         ins = w[winding_number(gt, w) > 0.5]
-        d, _ = cKDTree(gt.sample(300000)).query(ins)
+        d, _ = cKDTree(sample_surface(gt, 300000, seed=0)).query(ins)  # seeded: the same nodes every run
         deep = ins[d > depth_mm / 1000]
         f2, s2 = view_counts(deep, scene, frames, depth, margin_cells * cell)
         res["inside_gt"] = {
@@ -207,6 +218,7 @@ def analyse(scene, grid: np.ndarray, frames: list[int], depth_mm: float = 10.0, 
             "axis_percentiles_5_50_95_m": np.round(np.percentile(deep, [5, 50, 95], axis=0), 3).T.tolist() if len(deep) else [],
             "views_framing_hist": np.bincount(f2, minlength=len(frames) + 1).tolist(),
             "views_seeing_hist": np.bincount(s2, minlength=len(frames) + 1).tolist()}
+    if scene.gt_mesh:
         res["fill"] = []
         for r in closings:
             pk = narrow_pockets(grid, r)
@@ -226,6 +238,7 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
     ap.add_argument("--depth-mm", type=float, default=10.0)
     ap.add_argument("--closing", default="0,1,2,3", help="closing radii in grid cells")
+    ap.add_argument("--fill-only", action="store_true", help="skip the views and the depth below the GT")
     ap.add_argument("--json", type=Path)
     a = ap.parse_args(argv)
     from fastneus.data import Scene
@@ -241,7 +254,8 @@ def main(argv: list[str] | None = None) -> None:
             save_grid(a.save_grid, grid, frames)
             print(f"grid {grid.shape[0]}^3 -> {a.save_grid}")
             return
-    res = analyse(scene, grid, frames, a.depth_mm, [int(x) for x in a.closing.split(",") if x.strip()])
+    res = analyse(scene, grid, frames, a.depth_mm, [int(x) for x in a.closing.split(",") if x.strip()],
+                  views=not a.fill_only)
     print(json.dumps(res, indent=1))
     if a.json:
         a.json.write_text(json.dumps(res, indent=1))
