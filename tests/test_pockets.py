@@ -50,6 +50,9 @@ def test_a_cavity_behind_a_narrow_opening_is_filled_only_once_the_closing_spans_
     x, y, z = _coords()
     assert pk[N // 2, N // 2, N // 2] and pk[np.sqrt(x * x + y * y + z * z) < 0.2].all()
     assert not pk[(g < 0)].any()                                    # the solid itself is never marked
+    # a ball wider than the cavity closes it whole; the cavity is still found (far from the outside)
+    pk3 = narrow_pockets(g, 5)
+    assert pk3[N // 2, N // 2, N // 2] and not pk3[(g < 0)].any()
 
 
 def test_a_wide_open_concavity_is_not_a_pocket():
