@@ -111,14 +111,14 @@ def view_counts(world: np.ndarray, scene, frames: list[int], depth: dict[int, np
                 margin: float) -> tuple[np.ndarray, np.ndarray]:
     """For points [M, 3] (world): in how many views each is in frame, and in how many it is seen
     (its camera z at most its pixel's first-surface depth + ``margin``, world units)."""
-    from fastneus.train.visibility import _project
+    from fastneus.train.visibility import project_points
 
     framed = np.zeros(len(world), dtype=np.int64)
     seen = np.zeros(len(world), dtype=np.int64)
     pts = torch.from_numpy(np.asarray(world, dtype=np.float64))
     for i in frames:
         cam = scene.frame_camera(i)
-        uv, zc, _ = _project(scene, i, pts, 0.0)
+        uv, zc, _ = project_points(scene, i, pts, 0.0)
         uv, zc = uv.numpy(), zc.numpy()
         ui, vi = np.floor(uv[:, 0]).astype(np.int64), np.floor(uv[:, 1]).astype(np.int64)
         ok = (zc > 1e-6) & (ui >= 0) & (ui < cam.width) & (vi >= 0) & (vi < cam.height)
