@@ -31,6 +31,7 @@ import json
 import sys
 from pathlib import Path
 
+import fastneus  # noqa: F401  (before torch: it sets the OpenMP spin the product runs with)
 import numpy as np
 import torch
 
