@@ -73,38 +73,34 @@ def _world(scene, idx: np.ndarray, n: int) -> np.ndarray:
 # ----------------------------------------------------------------------------- visibility
 @torch.no_grad()
 def depth_maps(grid: np.ndarray, scene, frames: list[int], steps: int = 768, chunk: int = 4096) -> dict[int, np.ndarray]:
-    """Per view, the camera-z depth [H, W] of the first node of negative SDF along each pixel-centre
-    ray inside the unit ball (inf where the ray meets none), trilinear in ``grid``."""
+    """Per view, the camera-z depth [H, W] (world units) of the first negative SDF sample along each
+    pixel-centre ray inside the unit ball (inf where the ray meets none), trilinear in ``grid``."""
+    from fastneus.geometry.projection import pixel_rays, unit_sphere_chord
+
     G = torch.from_numpy(np.ascontiguousarray(grid.transpose(2, 1, 0)))[None, None]  # grid_sample: [z, y, x]
     S = scene.normalisation()
-    c, r = S[:3, 3], S[0, 0]
+    ts = torch.linspace(0.0, 1.0, steps, dtype=torch.float64)
     out = {}
     for i in frames:
         cam = scene.frame_camera(i)
         c2w = np.asarray(scene.cam_to_world(i), dtype=np.float64)
-        v, u = np.mgrid[0:cam.height, 0:cam.width] + 0.5
-        d = np.stack([(u - cam.K[0, 2]) / cam.K[0, 0], (v - cam.K[1, 2]) / cam.K[1, 1], np.ones_like(u)], -1)
-        dn = d.reshape(-1, 3) @ c2w[:3, :3].T / r   # normalised units per unit of camera z
-        o = (c2w[:3, 3] - c) / r
-        a, b, cc = (dn * dn).sum(1), 2 * dn @ o, o @ o - 1.0
-        disc = b * b - 4 * a * cc
-        sq = np.sqrt(np.maximum(disc, 0.0))
-        t0, t1 = np.maximum((-b - sq) / (2 * a), 0.0), (-b + sq) / (2 * a)
-        hit = (disc > 0) & (t1 > t0)
-        ts = torch.linspace(0.0, 1.0, steps, dtype=torch.float64)
-        depth = np.full(len(a), np.inf)
-        hits = np.nonzero(hit)[0]
+        v, u = torch.meshgrid(torch.arange(cam.height, dtype=torch.float64) + 0.5,
+                              torch.arange(cam.width, dtype=torch.float64) + 0.5, indexing="ij")
+        o, d = pixel_rays(np.asarray(cam.K, dtype=np.float64), c2w, torch.stack([u, v], -1).reshape(-1, 2), S)
+        t0, t1 = unit_sphere_chord(o, d)                                   # normalised units along unit d
+        to_z = (d @ torch.from_numpy(c2w[:3, 2])) * S[0, 0]              # camera z per normalised t
+        depth = torch.full((d.shape[0],), float("inf"), dtype=torch.float64)
+        hits = torch.nonzero(t1 > t0)[:, 0]
         for k in range(0, len(hits), chunk):
             sel = hits[k:k + chunk]
-            T = torch.from_numpy(t0[sel])[:, None] + torch.from_numpy(t1[sel] - t0[sel])[:, None] * ts[None]
-            p = torch.from_numpy(o)[None, None] + T[..., None] * torch.from_numpy(dn[sel])[:, None]
+            T = t0[sel, None] + (t1[sel] - t0[sel])[:, None] * ts[None]    # [m, steps]
+            p = o[sel, None] + T[..., None] * d[sel, None]
             f = torch.nn.functional.grid_sample(G, p.float()[None, None], align_corners=True,
                                                 padding_mode="border")[0, 0, 0]
             neg = f < 0
-            first = neg.float().argmax(1)
-            dd = T.gather(1, first[:, None])[:, 0].numpy()
-            depth[sel] = np.where(neg.any(1).numpy(), dd, np.inf)
-        out[i] = depth.reshape(cam.height, cam.width)
+            t_hit = T.gather(1, neg.float().argmax(1, keepdim=True))[:, 0]
+            depth[sel] = torch.where(neg.any(1), t_hit * to_z[sel], depth[sel])
+        out[i] = depth.reshape(cam.height, cam.width).numpy()
     return out
 
 
@@ -112,14 +108,14 @@ def view_counts(world: np.ndarray, scene, frames: list[int], depth: dict[int, np
                 margin: float) -> tuple[np.ndarray, np.ndarray]:
     """For points [M, 3] (world): in how many views each is in frame, and in how many it is seen
     (its camera z at most its pixel's first-surface depth + ``margin``, world units)."""
-    from fastneus.train.visibility import project_points
+    from fastneus.geometry.projection import project_points
 
     framed = np.zeros(len(world), dtype=np.int64)
     seen = np.zeros(len(world), dtype=np.int64)
     pts = torch.from_numpy(np.asarray(world, dtype=np.float64))
     for i in frames:
         cam = scene.frame_camera(i)
-        uv, zc, _ = project_points(scene, i, pts, 0.0)
+        uv, zc = project_points(pts, np.asarray(cam.K, dtype=np.float64), scene.world_to_cam(i))
         uv, zc = uv.numpy(), zc.numpy()
         ui, vi = np.floor(uv[:, 0]).astype(np.int64), np.floor(uv[:, 1]).astype(np.int64)
         ok = (zc > 1e-6) & (ui >= 0) & (ui < cam.width) & (vi >= 0) & (vi < cam.height)

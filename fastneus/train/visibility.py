@@ -31,7 +31,7 @@ def _cell_centres(scene, resolution: int, device, dtype) -> tuple[torch.Tensor, 
     return pts @ S[:3, :3].T + S[:3, 3], float(scene.bounds.radius) * np.sqrt(3.0) / r
 
 
-def project_points(scene, i: int, world: torch.Tensor, half: float) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+def _project(scene, i: int, world: torch.Tensor, half: float) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Frame ``i``'s pixel coordinates uv [N, 2] and depth z [N] of ``world`` points, and each point's
     projected ``half`` (a cell's half-diagonal) in pixels [N]."""
     cam = scene.frame_camera(i)
@@ -70,7 +70,7 @@ def seen_cells(scene, frames: list[int], resolution: int, device, min_views: int
     count = torch.zeros(world.shape[0], dtype=torch.int32, device=dev)
     for i in seen_views.values():
         cam = scene.frame_camera(i)
-        uv, zc, pad = project_points(scene, i, world, half)
+        uv, zc, pad = _project(scene, i, world, half)
         inside = (zc > 1e-6) & (uv[:, 0] > -pad) & (uv[:, 0] < cam.width + pad) & (uv[:, 1] > -pad) & \
             (uv[:, 1] < cam.height + pad)
         count += inside.to(torch.int32)
@@ -129,7 +129,7 @@ def _hull_excess(scene, masks: list[tuple[int, np.ndarray]], world: torch.Tensor
     for i, fg in masks:
         # distance (px) from each pixel to the nearest foreground pixel
         dist = torch.from_numpy(cv2.distanceTransform((~fg).astype(np.uint8), cv2.DIST_L2, 5)).to(dev)
-        uv, zc, pad = project_points(scene, i, world, half)
+        uv, zc, pad = _project(scene, i, world, half)
         u, v = uv[:, 0].floor().long(), uv[:, 1].floor().long()
         h, w = dist.shape
         vis = (zc > 1e-6) & (u >= 0) & (u < w) & (v >= 0) & (v < h)
@@ -197,7 +197,7 @@ def _uncovered(scene, masks: list[tuple[int, np.ndarray]], hull: torch.Tensor, w
     out = []
     for i, fg in masks:
         h, w = fg.shape
-        uv, zc, pad = project_points(scene, i, world, half)
+        uv, zc, pad = _project(scene, i, world, half)
         u, v = uv[:, 0].floor().long(), uv[:, 1].floor().long()
         ok = (zc > 1e-6) & (u >= 0) & (u < w) & (v >= 0) & (v < h)
         hit = np.zeros((h, w), np.uint8)
