@@ -162,19 +162,12 @@ def narrow_pockets(grid: np.ndarray, radius: int) -> np.ndarray:
 
 
 def mesh_metrics(grid: np.ndarray, scene, frames: list[int]) -> dict:
-    """Marching cubes of the grid (world units, the export's small-piece filter) against the GT."""
-    import trimesh
-    from skimage.measure import marching_cubes
-
+    """The export's dense reference mesh of the grid (marching cubes, world units, small pieces
+    dropped) against the GT."""
     from fastneus.eval.metrics import geometry_metrics
-    from fastneus.export.mesh import keep_large_components
+    from fastneus.export.mesh import mesh_from_grid
 
-    n = grid.shape[0]
-    h = 2.0 / (n - 1)
-    v, f, _, _ = marching_cubes(grid, 0.0, spacing=(h, h, h))
-    S = scene.normalisation()
-    v, f = keep_large_components((v - 1.0) * S[0, 0] + S[:3, 3], np.ascontiguousarray(f[:, ::-1]), 0.02)
-    m = geometry_metrics(trimesh.Trimesh(v, f, process=False), scene, frames)
+    m = geometry_metrics(mesh_from_grid(grid, scene.bounds.center, float(scene.bounds.radius)), scene, frames)
     return {k: round(float(m[k]), 3) for k in ("chamfer_gt2rec_mm", "chamfer_rec2gt_mm", "chamfer_sym_mm", "fscore")
             if k in m}
 

@@ -99,6 +99,12 @@ def test_depth_maps_and_view_counts_see_the_front_not_the_inside(tmp_path):
     framed, seen = view_counts(pts, scene, frames, depth, margin=2 * S[0, 0] / (n - 1))
     assert framed[0] == len(frames) and seen[0] == 0                  # inside: framed by all, seen by none
     assert seen[1] >= 1                                               # in front of view 0's surface: seen
+    # the grid's own mesh against the GT sphere: within about a grid cell
+    from pockets import analyse
+
+    res = analyse(scene, g, frames, closings=(0,), views=False)
+    cell_mm = 2 * S[0, 0] / (n - 1) * 1000
+    assert res["fill"][0]["filled_nodes"] == 0 and res["fill"][0]["chamfer_sym_mm"] < cell_mm
 
 
 def test_the_grid_file_round_trips_and_refuses_pickles(tmp_path):
