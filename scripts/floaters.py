@@ -181,7 +181,9 @@ def main(argv: list[str] | None = None) -> None:
         print(f"| {100 * p['error_share']:.1f} % | {p['area_cm2']:.1f} | {p['mean_mm']:.1f} / {p['max_mm']:.1f} | "
               f"{p['centroid_m']} | {'yes' if p['attached'] else 'no'} | {p['masks_covering']} / {p['masks_seeing']} | {ins} |")
     if a.json:
-        a.json.write_text(json.dumps(res, indent=1))
+        from fastneus.io import atomic_write_text
+
+        atomic_write_text(a.json, json.dumps(res, indent=1))
 
 
 if __name__ == "__main__":

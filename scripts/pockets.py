@@ -41,8 +41,14 @@ CLIP = 0.05  # normalised SDF units kept in a saved grid (beyond: saturated)
 # ----------------------------------------------------------------------------- the grid
 def save_grid(path: Path, grid: np.ndarray, frames: list[int]) -> None:
     """[N, N, N] float SDF (indexed [x, y, z], nodes of linspace(-1, 1, N)) as clipped int16 + the frames."""
+    from fastneus.io import atomic_write
+
     q = (np.clip(grid, -CLIP, CLIP) * (32767 / CLIP)).round().astype(np.int16)
-    np.savez_compressed(path, sdf=q, frames=np.asarray(frames, dtype=np.int64))
+
+    def write(tmp: str) -> None:  # a file object: numpy adds no ".npz" to the name
+        with open(tmp, "wb") as f:
+            np.savez_compressed(f, sdf=q, frames=np.asarray(frames, dtype=np.int64))
+    atomic_write(path, write)  # built aside and renamed: a link at ``path`` is replaced, never written through
 
 
 def load_grid(path: Path) -> tuple[np.ndarray, list[int]]:
@@ -248,7 +254,9 @@ def main(argv: list[str] | None = None) -> None:
                   views=not a.fill_only)
     print(json.dumps(res, indent=1))
     if a.json:
-        a.json.write_text(json.dumps(res, indent=1))
+        from fastneus.io import atomic_write_text
+
+        atomic_write_text(a.json, json.dumps(res, indent=1))
 
 
 if __name__ == "__main__":

@@ -115,6 +115,13 @@ def test_the_grid_file_round_trips_and_refuses_pickles(tmp_path):
     back, frames = load_grid(tmp_path / "g.npz")
     assert frames == [0, 2, 5]
     assert np.abs(back - np.clip(g, -CLIP, CLIP)).max() < 2e-6
+    # a link at the destination is replaced, not written through
+    other = tmp_path / "user.txt"
+    other.write_text("the user's file")
+    (tmp_path / "link.npz").symlink_to(other)
+    save_grid(tmp_path / "link.npz", g, [1])
+    assert other.read_text() == "the user's file" and not (tmp_path / "link.npz").is_symlink()
+    assert load_grid(tmp_path / "link.npz")[1] == [1]
     np.savez(tmp_path / "evil.npz", sdf=np.array([{"a": 1}], dtype=object), frames=np.zeros(1))
     with pytest.raises(ValueError):
         load_grid(tmp_path / "evil.npz")
